@@ -1,0 +1,174 @@
+"""The gym-style environment: actions are candidate cameras, observations are views.
+
+:class:`ActiveViewEnv` is a ``gymnasium.Env`` over a *view source*: anything
+with ``candidates`` and ``heldout`` camera lists, scene bounds, and a way
+to observe a candidate (see :class:`ViewSource`). :class:`SceneSource`
+renders a Mitsuba scene on demand, so it can also capture arbitrary poses;
+a pre-captured dataset source only looks its views up.
+
+The reward is always 0: reconstruction quality is measured by the
+evaluation protocol (:mod:`mitsuba_active.run`), not by the environment.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from .cameras import Camera, check_disjoint, scene_rigs
+from .errors import UserError
+from .groundtruth import GroundTruth, View
+
+
+class ViewSource(Protocol):
+    """What :class:`ActiveViewEnv` needs from a scene or a dataset."""
+
+    candidates: list[Camera]
+    heldout: list[Camera]
+    bbox_min: np.ndarray
+    bbox_max: np.ndarray
+    name: str
+
+    def candidate_view(self, index: int) -> View: ...
+
+    def heldout_view(self, index: int) -> View: ...
+
+    def render(self, camera: Camera) -> View:
+        """Capture an arbitrary camera; sources that cannot raise UserError."""
+
+
+class SceneSource:
+    """Views of a Mitsuba scene, rendered on demand and cached.
+
+    Args:
+        scene: a loaded :class:`~mitsuba_active.scene.Scene`.
+        candidates, heldout: camera lists (see :func:`~mitsuba_active.cameras.scene_rigs`).
+        spp: samples per pixel of the ground-truth renders.
+        cache_dir: EXR cache folder (see :class:`~mitsuba_active.groundtruth.GroundTruth`).
+    """
+
+    def __init__(self, scene, candidates, heldout, spp=64, cache_dir=None):
+        check_disjoint(candidates, heldout)
+        self.scene = scene
+        self.name = scene.path.stem
+        self.candidates, self.heldout = list(candidates), list(heldout)
+        self.bbox_min, self.bbox_max = scene.bbox_min, scene.bbox_max
+        self.groundtruth = GroundTruth(scene, spp=spp, cache_dir=cache_dir)
+
+    @classmethod
+    def from_xml(cls, xml_path, rig="auto", n_candidates=100, n_heldout=20, resolution=64, fov=None,
+                 spp=64, cache_dir=None):
+        from .scene import load_scene
+
+        scene = load_scene(xml_path)
+        cands, held = scene_rigs(scene, rig, n_candidates, n_heldout, resolution, resolution, fov)
+        return cls(scene, cands, held, spp=spp, cache_dir=cache_dir)
+
+    def candidate_view(self, index: int) -> View:
+        return self.groundtruth.render(self.candidates[index])
+
+    def heldout_view(self, index: int) -> View:
+        return self.groundtruth.render(self.heldout[index])
+
+    def render(self, camera: Camera) -> View:
+        return self.groundtruth.render(camera)
+
+
+class ActiveViewEnv(gym.Env):
+    """Choose views of a scene one at a time, under a view budget.
+
+    * action: index of a candidate camera, ``Discrete(n_candidates)``;
+    * observation: ``{"rgb": (H,W,3) float32 in [0,1], "distance": (H,W)
+      float32 (0 where nothing is hit), "mask": (H,W) int8 hit mask,
+      "pose": (4,4) float32 camera-to-world (Mitsuba convention)}``;
+    * ``info``: ``"intrinsics"`` (3,3), ``"action_mask"`` (n_candidates,)
+      int8 with 1 for views not yet captured, ``"captured"`` (list of
+      indices), ``"views_left"``;
+    * terminated once ``budget`` views have been captured (initial views count).
+
+    Capturing a view twice is allowed (it spends budget): a planner that
+    samples with replacement does exactly that. ``capture_pose`` captures
+    any 4x4 pose when the source can render.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, source: ViewSource, budget: int = 20):
+        n = len(source.candidates)
+        if n == 0:
+            raise UserError("the environment has no candidate views")
+        if int(budget) <= 0:
+            raise UserError(f"the view budget must be positive, got {budget}")
+        if budget > n:
+            raise UserError(f"the view budget ({budget}) is larger than the number of candidate views ({n})")
+        sizes = {(c.height, c.width) for c in source.candidates}
+        if len(sizes) != 1:
+            raise UserError(f"candidate views must share one resolution, got {sorted(sizes)}")
+        (h, w), = sizes
+        self.source, self.budget, self.shape = source, int(budget), (h, w)
+        self.action_space = spaces.Discrete(n)
+        self.observation_space = spaces.Dict({
+            "rgb": spaces.Box(0.0, 1.0, (h, w, 3), np.float32),
+            "distance": spaces.Box(0.0, np.inf, (h, w), np.float32),
+            "mask": spaces.Box(0, 1, (h, w), np.int8),
+            "pose": spaces.Box(-np.inf, np.inf, (4, 4), np.float32),
+        })
+        self.captured: list[int] = []
+        self.views: list[View] = []
+
+    # -- gymnasium API -------------------------------------------------------
+    def reset(self, *, seed=None, options=None):
+        """Start over; ``options={"initial_views": k}`` captures k distinct random candidates first."""
+        super().reset(seed=seed)
+        k = int((options or {}).get("initial_views", 1))
+        if not 0 <= k <= self.budget:
+            raise UserError(f"initial views ({k}) must be between 0 and the budget ({self.budget})")
+        self.captured, self.views = [], []
+        for i in self.np_random.choice(self.action_space.n, size=k, replace=False):
+            self._capture(int(i))
+        if self.views:
+            return self._obs(self.views[-1]), self._info()
+        blank = {"rgb": np.zeros((*self.shape, 3), np.float32), "distance": np.zeros(self.shape, np.float32),
+                 "mask": np.zeros(self.shape, np.int8), "pose": np.eye(4, dtype=np.float32)}
+        return blank, self._info()
+
+    def step(self, action):
+        if not self.action_space.contains(action):
+            raise UserError(f"invalid action {action}; expected a candidate index in [0, {self.action_space.n})")
+        if self.terminated:
+            raise UserError("the view budget is spent; call reset()")
+        view = self._capture(int(action))
+        return self._obs(view), 0.0, self.terminated, False, self._info()
+
+    # -- beyond gymnasium ----------------------------------------------------
+    @property
+    def terminated(self) -> bool:
+        return len(self.captured) >= self.budget
+
+    def capture_pose(self, pose: np.ndarray) -> dict:
+        """Capture an arbitrary camera-to-world pose (Mitsuba convention) with the candidates' intrinsics.
+
+        The view is returned as an observation but not added to the captured set.
+        """
+        ref = self.source.candidates[0]
+        cam = Camera(np.asarray(pose, dtype=np.float64), ref.fov, ref.width, ref.height, ref.near, ref.far)
+        return self._obs(self.source.render(cam))
+
+    def _capture(self, index: int) -> View:
+        view = self.source.candidate_view(index)
+        self.captured.append(index)
+        self.views.append(view)
+        return view
+
+    def _obs(self, view: View) -> dict:
+        return {"rgb": view.rgb.astype(np.float32), "distance": view.distance.astype(np.float32),
+                "mask": view.mask.astype(np.int8), "pose": view.camera.to_world.astype(np.float32)}
+
+    def _info(self) -> dict:
+        mask = np.ones(self.action_space.n, dtype=np.int8)
+        mask[self.captured] = 0
+        return {"intrinsics": self.source.candidates[0].intrinsics(), "action_mask": mask,
+                "captured": list(self.captured), "views_left": self.budget - len(self.captured)}

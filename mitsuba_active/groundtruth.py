@@ -1,0 +1,116 @@
+"""Ground truth: physically rendered RGB and distance for any camera, cached as EXR.
+
+RGB comes from the scene's own integrator (``mi.render``); distance is the
+length of the pixel-centre ray from the optical centre to the first hit
+(not Mitsuba's ``aov`` depth, which starts at the near-clip plane). Renders
+are cached in a content-addressed EXR store: the key hashes the scene's
+content, the pose, the intrinsics, the resolution and the sample count.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .cameras import Camera, sensor_rays_dr
+from .imageio_utils import linear_to_srgb, read_exr, write_exr
+
+CACHE_VERSION = "1"
+
+
+def default_cache_dir() -> Path:
+    """``$MITSUBA_ACTIVE_CACHE``, else ``$XDG_CACHE_HOME/mitsuba-active``, else ``~/.cache/mitsuba-active``."""
+    if os.environ.get("MITSUBA_ACTIVE_CACHE"):
+        return Path(os.environ["MITSUBA_ACTIVE_CACHE"])
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "mitsuba-active"
+
+
+@dataclass
+class View:
+    """One captured view.
+
+    Attributes:
+        rgb: (H, W, 3) float32 sRGB colour in [0, 1].
+        distance: (H, W) float32 distance from the optical centre in scene units; 0 where ``mask`` is False.
+        mask: (H, W) bool, True where the pixel-centre ray hits geometry.
+        camera: the camera it was taken with.
+    """
+
+    rgb: np.ndarray
+    distance: np.ndarray
+    mask: np.ndarray
+    camera: Camera
+
+
+def render_distance(mi_scene, camera: Camera) -> np.ndarray:
+    """(H, W) float32 distance from the optical centre along pixel-centre rays, 0 where nothing is hit."""
+    import drjit as dr
+    import mitsuba as mi
+
+    o, d = sensor_rays_dr(camera.sensor(), camera.width, camera.height)
+    si = mi_scene.ray_intersect(mi.Ray3f(o, d))
+    t = dr.select(si.is_valid(), si.t, 0.0)
+    return np.array(t, dtype=np.float32).reshape(camera.height, camera.width)
+
+
+def render_rgb(mi_scene, camera: Camera, spp: int, seed: int = 0) -> np.ndarray:
+    """(H, W, 3) float32 linear radiance from the scene's integrator."""
+    import mitsuba as mi
+
+    img = mi.render(mi_scene, sensor=camera.sensor(spp), spp=spp, seed=seed)
+    return np.array(img, dtype=np.float32)[..., :3]
+
+
+class GroundTruth:
+    """Renders and caches the views of one scene.
+
+    Args:
+        scene: a :class:`mitsuba_active.scene.Scene`.
+        spp: samples per pixel of the RGB render.
+        cache_dir: EXR cache folder (``None``: :func:`default_cache_dir`; ``False``: no cache).
+    """
+
+    def __init__(self, scene, spp: int = 64, cache_dir=None):
+        if int(spp) <= 0:
+            from .errors import UserError
+
+            raise UserError(f"samples per pixel must be positive, got {spp}")
+        self.scene = scene
+        self.spp = int(spp)
+        self.cache_dir = None if cache_dir is False else Path(cache_dir or default_cache_dir())
+
+    def key(self, camera: Camera) -> str:
+        h = hashlib.sha256()
+        h.update(f"v{CACHE_VERSION}|{self.scene.content_hash}|{self.spp}|".encode())
+        h.update(np.round(camera.to_world, 9).astype(np.float64).tobytes())
+        h.update(f"|{camera.fov:.9g}|{camera.width}|{camera.height}|{camera.near:.9g}".encode())
+        return h.hexdigest()
+
+    def render(self, camera: Camera) -> View:
+        """The view from ``camera``, from the cache when it is there."""
+        path = None
+        if self.cache_dir is not None:
+            key = self.key(camera)
+            path = self.cache_dir / key[:2] / f"{key}.exr"
+            if path.is_file():
+                try:
+                    ch = read_exr(path)
+                    return self._view(ch["RGB"], ch["Z"], camera)
+                except Exception:
+                    pass  # a damaged entry is simply rendered again
+        # Seed from the pose so that views are independent but reproducible.
+        seed = int(self.key(camera)[:7], 16)
+        linear = render_rgb(self.scene.mi_scene, camera, self.spp, seed)
+        distance = render_distance(self.scene.mi_scene, camera)
+        if path is not None:
+            write_exr(path, {"RGB": linear, "Z": distance})
+        return self._view(linear, distance, camera)
+
+    @staticmethod
+    def _view(linear, distance, camera) -> View:
+        return View(linear_to_srgb(linear), distance.astype(np.float32), distance > 0, camera)

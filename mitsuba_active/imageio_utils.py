@@ -1,0 +1,86 @@
+"""Image files: EXR (float, via OpenEXR) and PNG (8-bit, via imageio), written atomically.
+
+Every writer goes through :func:`atomic_write`: the file appears whole under
+its final name or not at all, so an interrupted run leaves nothing half-written.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+
+@contextlib.contextmanager
+def atomic_write(path, suffix=""):
+    """Yield a temporary path in the same folder; rename it onto ``path`` on success."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def write_exr(path, channels: dict[str, np.ndarray]) -> None:
+    """Write float32 channels to an EXR. Keys: ``"RGB"`` (H,W,3) or single names (H,W)."""
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
+    with atomic_write(path) as tmp, OpenEXR.File(header, data) as f:
+        f.write(str(tmp))
+
+
+def read_exr(path) -> dict[str, np.ndarray]:
+    """Read an EXR's channels as float32 arrays, RGB grouped to (H,W,3)."""
+    import OpenEXR
+
+    with OpenEXR.File(str(path)) as f:
+        return {k: np.array(v.pixels, dtype=np.float32) for k, v in f.channels().items()}
+
+
+def linear_to_srgb(x: np.ndarray) -> np.ndarray:
+    """sRGB transfer function, clipped to [0, 1]; float32 in, float32 out."""
+    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)
+    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
+
+
+def to_uint8(img: np.ndarray) -> np.ndarray:
+    return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def write_png(path, img: np.ndarray) -> None:
+    """Write an image in [0, 1] ((H,W), (H,W,3) or (H,W,4)) as 8-bit PNG."""
+    import imageio.v3 as iio
+
+    with atomic_write(path) as tmp:
+        iio.imwrite(tmp, to_uint8(img), extension=".png")
+
+
+def colorize(values: np.ndarray, mask: np.ndarray | None = None, vmin=None, vmax=None, cmap="turbo") -> np.ndarray:
+    """Map a scalar image (H,W) to RGB (H,W,3) in [0,1]; pixels outside ``mask`` are black."""
+    import matplotlib
+
+    v = np.asarray(values, dtype=np.float64)
+    m = np.isfinite(v) if mask is None else (mask & np.isfinite(v))
+    if not m.any():
+        return np.zeros(v.shape + (3,), dtype=np.float32)
+    lo = np.min(v[m]) if vmin is None else vmin
+    hi = np.max(v[m]) if vmax is None else vmax
+    t = np.clip((v - lo) / max(hi - lo, 1e-12), 0, 1)
+    rgb = matplotlib.colormaps[cmap](np.where(m, t, 0))[..., :3].astype(np.float32)
+    rgb[~m] = 0.0
+    return rgb

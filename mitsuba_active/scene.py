@@ -1,0 +1,371 @@
+"""Scenes: author a Mitsuba scene from a mesh, or load any Mitsuba XML.
+
+A generated scene is a Y-up world with the mesh normalised into the unit
+bounding box ``[-0.5, 0.5]^3``, a diffuse (or textured) material, a
+constant environment light, and optionally a sun, point lights and a floor.
+The XML is plain Mitsuba 3 and loads with ``mitsuba.load_file`` alone.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import struct
+import tempfile
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import UserError
+
+MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
+TEXTURE_NAMES = ("{stem}_texture.png", "{stem}_texture.jpg", "{stem}.png", "{stem}.jpg", "{stem}_diffuse.png")
+
+
+# ---------------------------------------------------------------------------
+# Authoring from meshes
+# ---------------------------------------------------------------------------
+
+@dataclass
+class SceneOptions:
+    """How :func:`scene_from_mesh` dresses a mesh.
+
+    Attributes:
+        up: the mesh's up axis, ``"y"`` or ``"z"``; the scene is Y-up.
+        color: diffuse RGB reflectance in [0, 1] when there is no texture.
+        texture: an image to use as the diffuse texture (needs UVs); ``None``
+            looks for the mesh's own (its material, or ``<stem>_texture.png``
+            beside it); ``False`` never textures.
+        env_radiance: radiance of the constant environment light.
+        sun: add a directional light from above.
+        point_lights: number of point lights spread on a ring above the object.
+        floor: add a diffuse floor under the object.
+        max_depth: path tracer depth.
+    """
+
+    up: str = "y"
+    color: tuple = (0.6, 0.6, 0.6)
+    texture: str | bool | None = None
+    env_radiance: float = 1.0
+    sun: bool = False
+    point_lights: int = 0
+    floor: bool = False
+    max_depth: int = 6
+
+
+def load_mesh(path) -> "trimesh.Trimesh":
+    """Load one triangle mesh with trimesh; UserError when missing, unreadable, empty or degenerate."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"mesh file not found: {path}")
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise UserError(f"unsupported mesh format '{path.suffix}' ({path}); use one of {', '.join(MESH_SUFFIXES)}")
+    try:
+        mesh = trimesh.load(str(path), force="mesh")
+    except Exception as exc:
+        raise UserError(f"cannot read mesh {path}: {_one_line(exc)}") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0 or len(mesh.vertices) == 0:
+        raise UserError(f"mesh {path} has no triangles")
+    if not np.isfinite(mesh.vertices).all():
+        raise UserError(f"mesh {path} has non-finite vertex coordinates")
+    if mesh.area <= 1e-12 or float(np.max(mesh.extents)) <= 1e-12:
+        raise UserError(f"mesh {path} is degenerate (zero area or zero extent)")
+    return mesh
+
+
+def _find_texture(mesh, mesh_path: Path, texture) -> tuple[np.ndarray | None, Path | None]:
+    """UVs (V, 2) and texture image path, or (None, None) when the mesh is untextured."""
+    uv = getattr(mesh.visual, "uv", None)
+    if texture is False or uv is None or len(uv) != len(mesh.vertices):
+        return None, None
+    if texture:
+        tex = Path(texture)
+        if not tex.is_file():
+            raise UserError(f"texture file not found: {tex}")
+        return np.asarray(uv), tex
+    for pattern in TEXTURE_NAMES:
+        cand = mesh_path.with_name(pattern.format(stem=mesh_path.stem))
+        if cand.is_file():
+            return np.asarray(uv), cand
+    image = getattr(getattr(mesh.visual, "material", None), "image", None)
+    if image is not None and min(image.size) > 2:  # trimesh puts a 2x2 placeholder when there is none
+        return np.asarray(uv), "embedded"
+    return None, None
+
+
+def normalise_vertices(vertices: np.ndarray, up: str = "y") -> np.ndarray:
+    """Rotate to Y-up and fit into the unit box [-0.5, 0.5]^3 (uniform scale), (V, 3) float64."""
+    v = np.asarray(vertices, dtype=np.float64)
+    if up == "z":  # (x, y, z) -> (x, z, -y): Z-up becomes Y-up, right-handed
+        v = np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1)
+    elif up != "y":
+        raise UserError(f"--up must be 'y' or 'z', got '{up}'")
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    return (v - 0.5 * (lo + hi)) / float(np.max(hi - lo))
+
+
+def write_ply(path, vertices, faces, uv=None):
+    """Write a binary little-endian PLY with optional per-vertex UVs (Mitsuba's ``u``/``v``)."""
+    vertices = np.asarray(vertices, dtype=np.float32)
+    faces = np.asarray(faces, dtype=np.int32)
+    props = ["x", "y", "z"] + (["u", "v"] if uv is not None else [])
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(vertices)}"]
+    header += [f"property float {p}" for p in props]
+    header += [f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
+    vdata = vertices if uv is None else np.hstack([vertices, np.asarray(uv, dtype=np.float32)])
+    fdata = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    fdata["n"], fdata["i"] = 3, faces
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(np.ascontiguousarray(vdata, dtype="<f4").tobytes())
+        f.write(fdata.tobytes())
+
+
+def _scene_xml(mesh_file: str, texture_file: str | None, opts: SceneOptions) -> str:
+    c = " ".join(f"{x:g}" for x in opts.color)
+    if texture_file:
+        bsdf = (f'<bsdf type="diffuse"><texture type="bitmap" name="reflectance">'
+                f'<string name="filename" value="{texture_file}"/></texture></bsdf>')
+    else:
+        bsdf = f'<bsdf type="diffuse"><rgb name="reflectance" value="{c}"/></bsdf>'
+    lines = [
+        '<scene version="3.0.0">',
+        '    <!-- Generated by mitsuba-active: Y-up, object in [-0.5, 0.5]^3 -->',
+        '    <default name="spp" value="64"/>',
+        '    <default name="res" value="256"/>',
+        f'    <integrator type="path"><integer name="max_depth" value="{opts.max_depth}"/></integrator>',
+        '    <sensor type="perspective">',
+        '        <float name="fov" value="40"/>',
+        '        <transform name="to_world"><lookat origin="1.2, 0.9, 2.2" target="0, 0, 0" up="0, 1, 0"/></transform>',
+        '        <sampler type="independent"><integer name="sample_count" value="$spp"/></sampler>',
+        '        <film type="hdrfilm"><integer name="width" value="$res"/><integer name="height" value="$res"/>'
+        '<rfilter type="box"/></film>',
+        '    </sensor>',
+        f'    <shape type="ply" id="object"><string name="filename" value="{mesh_file}"/>{bsdf}</shape>',
+        f'    <emitter type="constant"><rgb name="radiance" value="{opts.env_radiance:g}"/></emitter>',
+    ]
+    if opts.sun:
+        lines.append('    <emitter type="directional"><vector name="direction" x="-0.4" y="-1" z="-0.3"/>'
+                     '<rgb name="irradiance" value="2.5"/></emitter>')
+    for k in range(opts.point_lights):
+        a = 2 * np.pi * k / opts.point_lights
+        lines.append(f'    <emitter type="point"><point name="position" x="{2 * np.cos(a):.4f}" y="2" '
+                     f'z="{2 * np.sin(a):.4f}"/><rgb name="intensity" value="3"/></emitter>')
+    if opts.floor:
+        lines.append('    <shape type="rectangle" id="floor"><transform name="to_world"><rotate x="1" angle="-90"/>'
+                     '<scale value="2"/><translate y="-0.501"/></transform>'
+                     '<bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>')
+    lines.append("</scene>")
+    return "\n".join(lines) + "\n"
+
+
+def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **kwargs) -> Path:
+    """Author a Mitsuba scene XML around a mesh; returns the XML path.
+
+    The normalised mesh is written as ``<stem>.ply`` next to ``out_xml``
+    (with its texture image when it has one). Either every file is
+    written, or none is. ``kwargs`` override fields of :class:`SceneOptions`.
+    """
+    opts = options or SceneOptions()
+    for k, v in kwargs.items():
+        if not hasattr(opts, k):
+            raise TypeError(f"unknown scene option {k}")
+        setattr(opts, k, v)
+    mesh_path, out_xml = Path(mesh_path), Path(out_xml)
+    mesh = load_mesh(mesh_path)
+    vertices = normalise_vertices(mesh.vertices, opts.up)
+    uv, texture = _find_texture(mesh, mesh_path, opts.texture)
+
+    out_dir = out_xml.parent if str(out_xml.parent) else Path(".")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    mesh_file = f"{mesh_path.stem}.ply"
+    tex_file = None
+    staging = Path(tempfile.mkdtemp(prefix=".mitsuba-active-", dir=out_dir))
+    try:
+        # Mitsuba's PLY reader takes v as given, OBJ/trimesh UVs have v up: flip.
+        write_ply(staging / mesh_file, vertices, mesh.faces, None if uv is None else
+                  np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1))
+        if texture == "embedded":
+            tex_file = f"{mesh_path.stem}_texture.png"
+            mesh.visual.material.image.save(staging / tex_file)
+        elif texture is not None:
+            tex_file = f"{mesh_path.stem}_texture{Path(texture).suffix.lower()}"
+            shutil.copyfile(texture, staging / tex_file)
+        (staging / out_xml.name).write_text(_scene_xml(mesh_file, tex_file, opts))
+        _load_mitsuba(staging / out_xml.name)  # validate before anything lands
+        for f in staging.iterdir():
+            os.replace(f, out_dir / f.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return out_xml
+
+
+# ---------------------------------------------------------------------------
+# Loading any Mitsuba XML
+# ---------------------------------------------------------------------------
+
+@dataclass
+class Scene:
+    """A loaded Mitsuba scene and what the planner needs to know about it.
+
+    Attributes:
+        path: the XML file.
+        mi_scene: the ``mitsuba.Scene``.
+        bbox_min, bbox_max: (3,) float64 scene bounds in scene units.
+        content_hash: hex digest of the XML and every file it references.
+        interior: True when the scene is a room seen from inside.
+        sensors: the XML's own perspective sensors as :class:`Camera` objects.
+        up: (3,) world up axis, taken from the first sensor's up vector
+            (snapped to the nearest axis), +Y when there is no sensor.
+    """
+
+    path: Path
+    mi_scene: object
+    bbox_min: np.ndarray
+    bbox_max: np.ndarray
+    content_hash: str
+    interior: bool = False
+    sensors: list = field(default_factory=list)
+    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+
+    @property
+    def center(self) -> np.ndarray:
+        return 0.5 * (self.bbox_min + self.bbox_max)
+
+    def free_space(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: True for points (N, 3) that are not inside a closed object.
+
+        A point is inside when a ray from it, along any of the six axis
+        directions, first meets the back face of a surface.
+        """
+        import drjit as dr
+        import mitsuba as mi
+
+        points = np.asarray(points, dtype=np.float64)
+        free = np.ones(len(points), dtype=bool)
+        for axis in range(3):
+            for sign in (-1.0, 1.0):
+                d = np.zeros((len(points), 3))
+                d[:, axis] = sign
+                ray = mi.Ray3f(mi.Point3f(points.T.astype(np.float32)), mi.Vector3f(d.T.astype(np.float32)))
+                si = self.mi_scene.ray_intersect(ray)
+                free &= ~np.array(si.is_valid() & (dr.dot(si.n, ray.d) > 0))
+        return free
+
+    @property
+    def radius(self) -> float:
+        """Radius of the bounding sphere of the bounding box."""
+        return 0.5 * float(np.linalg.norm(self.bbox_max - self.bbox_min))
+
+
+def _one_line(exc) -> str:
+    text = " ".join(str(exc).split())
+    return text if len(text) <= 300 else text[:297] + "..."
+
+
+def _referenced_files(xml_path: Path, seen=None, base: Path | None = None) -> list[Path]:
+    """Existing files an XML names (``filename`` strings and includes), recursively.
+
+    Names resolve against the including file's folder or the top-level
+    scene's folder, as Mitsuba's file resolver does. UserError if malformed.
+    """
+    seen = set() if seen is None else seen
+    base = base or xml_path.parent
+    try:
+        root = ET.parse(xml_path).getroot()
+    except ET.ParseError as exc:
+        raise UserError(f"malformed XML in {xml_path}: {exc}") from None
+    except OSError as exc:
+        raise UserError(f"cannot read {xml_path}: {exc.strerror}") from None
+    if root.tag != "scene":
+        raise UserError(f"{xml_path} is not a Mitsuba scene (root element <{root.tag}>, expected <scene>)")
+    files = []
+    for el in root.iter():
+        name = el.get("filename") if el.tag == "include" else (
+            el.get("value") if el.tag == "string" and el.get("name") == "filename" else None)
+        if not name or "$" in name:
+            continue
+        f = next((p.resolve() for p in (xml_path.parent / name, base / name) if p.is_file()), None)
+        if f is None or f in seen:
+            continue  # a missing file is reported by Mitsuba itself
+        seen.add(f)
+        files.append(f)
+        if el.tag == "include":
+            files += _referenced_files(f, seen, base)
+    return files
+
+
+def _load_mitsuba(xml_path: Path, **params):
+    import mitsuba as mi
+
+    try:
+        return mi.load_file(str(xml_path), **params)
+    except Exception as exc:
+        raise UserError(f"Mitsuba cannot load {xml_path}: {_one_line(exc)}") from None
+
+
+def _is_interior(mi_scene, bbox_min, bbox_max, n=256) -> bool:
+    """True when rays cast from the box centre mostly hit front faces: we are inside a room.
+
+    Inside a closed object (the usual case for a mesh) rays hit back faces;
+    around an object with a hollow centre most rays escape.
+    """
+    import drjit as dr
+    import mitsuba as mi
+
+    from .cameras import fibonacci_directions
+
+    d = fibonacci_directions(n)
+    c = 0.5 * (bbox_min + bbox_max)
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(np.full(n, x)) for x in c]), mi.Vector3f(*[mi.Float(d[:, j]) for j in range(3)]))
+    si = mi_scene.ray_intersect(ray)
+    hit = np.array(si.is_valid())
+    front = np.array(dr.dot(si.n, ray.d) < 0) & hit
+    return bool(hit.mean() > 0.75 and front.sum() > 0.8 * max(hit.sum(), 1))
+
+
+def load_scene(xml_path, **params) -> Scene:
+    """Load any Mitsuba 3 scene XML; UserError when missing, malformed or empty.
+
+    ``params`` are passed to ``mitsuba.load_file`` (XML ``$`` defaults).
+    """
+    import mitsuba as mi
+
+    from .cameras import Camera
+
+    xml_path = Path(xml_path)
+    if not xml_path.is_file():
+        raise UserError(f"scene file not found: {xml_path}")
+    refs = _referenced_files(xml_path)
+    mi_scene = _load_mitsuba(xml_path, **params)
+    if len(mi_scene.shapes()) == 0:
+        raise UserError(f"scene {xml_path} has no shapes")
+    bbox = mi_scene.bbox()
+    lo, hi = np.array(bbox.min, dtype=np.float64), np.array(bbox.max, dtype=np.float64)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()) or np.max(hi - lo) <= 0:
+        raise UserError(f"scene {xml_path} has empty or unbounded geometry")
+    h = hashlib.sha256(xml_path.read_bytes())
+    h.update(repr(sorted(params.items())).encode())
+    for f in refs:
+        h.update(f.read_bytes())
+    sensors = []
+    for s in mi_scene.sensors():
+        params = mi.traverse(s)
+        if "x_fov" not in params.keys():
+            continue  # not a perspective camera
+        size = s.film().crop_size()
+        fov = float(params["x_fov"][0])
+        m = np.array(s.world_transform().matrix, dtype=np.float64).reshape(4, 4)
+        sensors.append(Camera(m, fov, int(size[0]), int(size[1])))
+    up = np.array([0.0, 1.0, 0.0])
+    if sensors:
+        cam_up = sensors[0].to_world[:3, 1]
+        up = np.zeros(3)
+        up[np.argmax(np.abs(cam_up))] = np.sign(cam_up[np.argmax(np.abs(cam_up))])
+    return Scene(xml_path, mi_scene, lo, hi, h.hexdigest(), _is_interior(mi_scene, lo, hi), sensors, up)
+

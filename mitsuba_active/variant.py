@@ -1,0 +1,100 @@
+"""Choose the Mitsuba variant and make sure Dr.Jit finds a usable LLVM.
+
+Dr.Jit's CPU backend loads ``libLLVM.so`` at run time. Dr.Jit 1.5 needs
+LLVM >= 15 at all and aborts with "Cannot select ... fminimum" on LLVM 14
+and 15, so we look for LLVM >= 19 ourselves *before* Dr.Jit is imported and
+point ``DRJIT_LIBLLVM_PATH`` at it. When none is found we stop with one line
+that names the fix, instead of a crash deep inside the JIT.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import re
+
+from .errors import UserError
+
+#: Oldest LLVM release known to work with Dr.Jit 1.5 on this code.
+MIN_LLVM = 19
+
+#: Where Debian, Ubuntu, Fedora and conda put the LLVM shared library.
+LLVM_SEARCH_GLOBS = (
+    "/usr/lib/x86_64-linux-gnu/libLLVM*.so*",
+    "/usr/lib/aarch64-linux-gnu/libLLVM*.so*",
+    "/usr/lib/llvm-*/lib/libLLVM*.so*",
+    "/usr/lib64/libLLVM*.so*",
+    "/usr/lib/libLLVM*.so*",
+    "/usr/local/lib/libLLVM*.so*",
+    "/opt/homebrew/opt/llvm/lib/libLLVM.dylib",
+    "/usr/local/opt/llvm/lib/libLLVM.dylib",
+)
+
+LLVM_FIX = (
+    f"no usable LLVM (>= {MIN_LLVM}) found for Dr.Jit's CPU backend; "
+    "install it with 'sudo apt-get install libllvm19' "
+    "(or set DRJIT_LIBLLVM_PATH to a libLLVM.so of version >= 19)"
+)
+
+VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+
+
+def _llvm_major(path: str) -> int | None:
+    """Major LLVM version encoded in a library file name, e.g. libLLVM-19.so -> 19."""
+    name = os.path.basename(os.path.realpath(path))
+    m = re.search(r"LLVM[-.]?(\d+)", name) or re.search(r"\.so\.(\d+)", name)
+    if m is None:
+        m = re.search(r"llvm-(\d+)", path)
+    return int(m.group(1)) if m else None
+
+
+def find_llvm() -> str | None:
+    """Path of the newest LLVM shared library with version >= MIN_LLVM, or None."""
+    best, best_version = None, -1
+    for pattern in LLVM_SEARCH_GLOBS:
+        for path in glob.glob(pattern):
+            version = _llvm_major(path)
+            if version is not None and version >= MIN_LLVM and version > best_version:
+                best, best_version = path, version
+    return best
+
+
+def ensure_llvm() -> None:
+    """Point Dr.Jit at a usable LLVM, or raise UserError with the fix.
+
+    A user-set ``DRJIT_LIBLLVM_PATH`` is trusted as long as the file exists.
+    """
+    user_path = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if user_path:
+        if not os.path.exists(user_path):
+            raise UserError(f"DRJIT_LIBLLVM_PATH={user_path} does not exist; " + LLVM_FIX)
+        return
+    path = find_llvm()
+    if path is None:
+        raise UserError(LLVM_FIX)
+    os.environ["DRJIT_LIBLLVM_PATH"] = path
+
+
+def set_variant(name: str | None = None) -> str:
+    """Select the Mitsuba variant and return its name.
+
+    ``name`` defaults to ``$MITSUBA_ACTIVE_VARIANT`` or, when a Mitsuba
+    variant with autodiff and RGB is already set by the caller's pipeline,
+    that one; otherwise ``llvm_ad_rgb``. ``cuda_ad_rgb`` needs a GPU.
+    """
+    name = name or os.environ.get("MITSUBA_ACTIVE_VARIANT")
+    if name is not None and name not in VARIANTS:
+        raise UserError(f"unknown variant '{name}'; choose one of {', '.join(VARIANTS)}")
+    if name != "cuda_ad_rgb":
+        ensure_llvm()
+    import mitsuba as mi
+
+    current = mi.variant()
+    if name is None:
+        name = current if current in VARIANTS else "llvm_ad_rgb"
+    if current != name:
+        try:
+            mi.set_variant(name)
+        except Exception as exc:  # e.g. no CUDA driver
+            raise UserError(f"cannot use Mitsuba variant '{name}': {exc}") from None
+    return name

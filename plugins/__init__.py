@@ -1,0 +1,1 @@
+"""Mitsuba plugins shipped with mitsuba-active."""

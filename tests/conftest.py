@@ -1,0 +1,53 @@
+"""Shared fixtures: tiny scenes built from ../shared/data and from trimesh primitives."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mitsuba_active  # noqa: F401  (sets the Mitsuba variant)
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    assert SHARED.is_dir(), f"the shared test data is expected at {SHARED}"
+    return SHARED
+
+
+@pytest.fixture(scope="session")
+def spot_xml(tmp_path_factory, shared_data) -> Path:
+    from mitsuba_active.scene import scene_from_mesh
+
+    return scene_from_mesh(shared_data / "meshes" / "spot.obj", tmp_path_factory.mktemp("spot") / "spot.xml")
+
+
+@pytest.fixture(scope="session")
+def sphere_xml(tmp_path_factory) -> Path:
+    """A unit-box-normalised icosphere: radius 0.5 at the origin, so distances are analytic."""
+    import trimesh
+
+    from mitsuba_active.scene import scene_from_mesh
+
+    d = tmp_path_factory.mktemp("sphere")
+    trimesh.creation.icosphere(subdivisions=5, radius=1.0).export(d / "ball.ply")
+    return scene_from_mesh(d / "ball.ply", d / "ball.xml")
+
+
+@pytest.fixture()
+def cache_dir(tmp_path) -> Path:
+    return tmp_path / "cache"
+
+
+def tiny_source(xml, n_candidates=12, n_heldout=4, resolution=16, spp=4, cache_dir=False, rig="auto"):
+    from mitsuba_active.env import SceneSource
+
+    return SceneSource.from_xml(xml, rig=rig, n_candidates=n_candidates, n_heldout=n_heldout,
+                                resolution=resolution, spp=spp, cache_dir=cache_dir)
+
+
+@pytest.fixture()
+def rng():
+    return np.random.default_rng(0)

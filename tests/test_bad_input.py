@@ -1,0 +1,115 @@
+"""Every kind of bad input: one line on stderr, exit code 2, no traceback, nothing half-written."""
+
+import os
+import subprocess
+import sys
+
+import pytest
+from click.testing import CliRunner
+
+from mitsuba_active.cli import main
+
+
+def run_cli(*args):
+    result = CliRunner().invoke(main, [str(a) for a in args])
+    return result.exit_code, result.output
+
+
+def assert_one_line_error(code, output, needle):
+    assert code == 2, output
+    lines = [ln for ln in output.splitlines() if ln.strip() and "it/s" not in ln and "%|" not in ln]
+    assert len(lines) == 1, output
+    assert lines[0].startswith("mitsuba-active: error:") and needle in lines[0], output
+    assert "Traceback" not in output
+
+
+@pytest.fixture()
+def out(tmp_path):
+    return tmp_path / "out"
+
+
+def _assert_nothing_written(path):
+    assert not path.exists() or not any(path.iterdir()), list(path.iterdir())
+
+
+def test_missing_mesh(tmp_path, out):
+    code, text = run_cli("scene", tmp_path / "nope.obj", "-o", out / "s.xml")
+    assert_one_line_error(code, text, "not found")
+    _assert_nothing_written(out)
+
+
+def test_unreadable_mesh(tmp_path, out):
+    bad = tmp_path / "bad.ply"
+    bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\ngarbage")
+    code, text = run_cli("scene", bad, "-o", out / "s.xml")
+    assert code == 2 and "Traceback" not in text
+    _assert_nothing_written(out)
+
+
+@pytest.mark.parametrize("content,needle", [
+    ("# no geometry at all\n", "no triangles"),
+    ("v 0 0 0\nv 0 0 0\nv 0 0 0\nf 1 2 3\n", "degenerate"),
+])
+def test_empty_and_degenerate_meshes(tmp_path, out, content, needle):
+    mesh = tmp_path / "m.obj"
+    mesh.write_text(content)
+    code, text = run_cli("scene", mesh, "-o", out / "s.xml")
+    assert_one_line_error(code, text, needle)
+    _assert_nothing_written(out)
+
+
+def test_malformed_xml(tmp_path, out):
+    xml = tmp_path / "broken.xml"
+    xml.write_text("<scene version='3.0.0'><shape type='sphere'>")
+    code, text = run_cli("render", xml, "-o", out)
+    assert_one_line_error(code, text, "malformed XML")
+    _assert_nothing_written(out)
+
+
+def test_xml_mitsuba_rejects(tmp_path, out):
+    xml = tmp_path / "odd.xml"
+    xml.write_text("<scene version='3.0.0'><shape type='no_such_plugin'/></scene>")
+    code, text = run_cli("render", xml, "-o", out)
+    assert_one_line_error(code, text, "Mitsuba cannot load")
+    _assert_nothing_written(out)
+
+
+def test_scene_without_shapes(tmp_path, out):
+    xml = tmp_path / "empty.xml"
+    xml.write_text("<scene version='3.0.0'><emitter type='constant'/></scene>")
+    code, text = run_cli("render", xml, "-o", out)
+    assert_one_line_error(code, text, "no shapes")
+    _assert_nothing_written(out)
+
+
+def test_zero_resolution(spot_xml, out):
+    code, text = run_cli("render", spot_xml, "-o", out, "--resolution", "0")
+    assert_one_line_error(code, text, "resolution")
+    _assert_nothing_written(out)
+
+
+def test_real_process_exit_code_and_stderr(tmp_path):
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    proc = subprocess.run([sys.executable, "-m", "mitsuba_active", "scene", str(tmp_path / "x.obj"), "-o",
+                           str(tmp_path / "o.xml")], capture_output=True, text=True, env=env)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "mitsuba-active: error:" in proc.stderr
+    assert not (tmp_path / "o.xml").exists()
+
+
+def test_missing_llvm_is_one_line_with_the_fix(tmp_path):
+    env = dict(os.environ, DRJIT_LIBLLVM_PATH=str(tmp_path / "libLLVM-nothing.so"))
+    proc = subprocess.run([sys.executable, "-c", "import mitsuba_active"], capture_output=True, text=True, env=env)
+    assert proc.returncode != 0
+    assert proc.stderr.strip().count("\n") == 0 and "apt-get install libllvm19" in proc.stderr
+
+
+def test_llvm_search_rejects_old_versions(monkeypatch, tmp_path):
+    from mitsuba_active import variant
+
+    for name in ("libLLVM-14.so.1", "libLLVM-15.so"):
+        (tmp_path / name).write_bytes(b"")
+    monkeypatch.setattr(variant, "LLVM_SEARCH_GLOBS", (str(tmp_path / "libLLVM*.so*"),))
+    assert variant.find_llvm() is None
+    (tmp_path / "libLLVM.so.19.1").write_bytes(b"")
+    assert variant.find_llvm().endswith("libLLVM.so.19.1")

@@ -1,0 +1,66 @@
+import numpy as np
+import pytest
+
+from mitsuba_active.cameras import (MITSUBA_TO_OPENGL, Camera, camera_rays, check_disjoint, fibonacci_sphere,
+                                    hemisphere, look_at, rings, scene_rigs)
+from mitsuba_active.errors import UserError
+from mitsuba_active.scene import load_scene
+
+
+@pytest.mark.parametrize("rig", [fibonacci_sphere, hemisphere, rings])
+def test_rigs_look_at_the_centre_from_the_radius(rig):
+    c = np.array([0.1, -0.2, 0.3])
+    cams = rig(17, c, 2.5, 50.0, 8, 6)
+    assert len(cams) == 17
+    for cam in cams:
+        assert np.linalg.norm(cam.position - c) == pytest.approx(2.5)
+        to_c = (c - cam.position) / 2.5
+        assert np.dot(cam.forward, to_c) == pytest.approx(1.0)
+        assert np.allclose(cam.to_world[:3, :3].T @ cam.to_world[:3, :3], np.eye(3), atol=1e-9)
+    if rig is hemisphere:
+        assert all(cam.position[1] > c[1] for cam in cams)
+
+
+def test_heldout_rig_is_disjoint_and_duplicates_are_caught(spot_xml):
+    scene = load_scene(spot_xml)
+    cands, held = scene_rigs(scene, "sphere", 30, 10, 8)
+    assert len(cands) == 30 and len(held) == 10
+    with pytest.raises(UserError):
+        check_disjoint(cands, [cands[3]])
+
+
+def test_xml_rig_uses_the_scenes_own_sensor(shared_data):
+    scene = load_scene(shared_data / "mitsuba/simple/scene.xml")
+    cands, held = scene_rigs(scene, "xml", n_heldout=5, width=8)
+    assert len(cands) == 1 and np.allclose(cands[0].position, [0, -12, 5], atol=1e-4)
+    assert len(held) == 5
+
+
+def test_rays_agree_with_intrinsics_and_pose():
+    cam = Camera(look_at([1, 2, 3], [0, 0, 0]), fov=60.0, width=8, height=6)
+    o, d = camera_rays(cam)
+    assert o.shape == (48, 3) and d.shape == (48, 3)
+    assert np.allclose(o, cam.position, atol=1e-5)
+    assert np.allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-5)
+    # Project every ray with K in the OpenCV frame: it must land on its pixel centre.
+    cv = cam.to_world @ np.diag([-1.0, -1.0, 1.0, 1.0])
+    local = d @ cv[:3, :3]  # world -> camera (rotation is orthonormal)
+    uv = (cam.intrinsics() @ (local / local[:, 2:3]).T).T[:, :2]
+    ys, xs = np.mgrid[0:6, 0:8]
+    assert np.allclose(uv, np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], 1), atol=1e-3)
+
+
+def test_opengl_conversion_round_trips():
+    m = look_at([1, 2, 3], [0, 0.5, 0])
+    gl = m @ MITSUBA_TO_OPENGL
+    assert np.allclose(-gl[:3, 2], m[:3, 2])  # OpenGL cameras look along -Z
+    assert np.allclose(gl @ MITSUBA_TO_OPENGL, m)
+
+
+def test_camera_validation():
+    with pytest.raises(UserError):
+        Camera(np.eye(4), 40.0, 0, 16)
+    with pytest.raises(UserError):
+        Camera(np.eye(4), 200.0, 16, 16)
+    cam = Camera.from_dict(Camera(look_at([0, 0, 2], [0, 0, 0]), 45.0, 5, 4).to_dict())
+    assert (cam.width, cam.height, cam.fov) == (5, 4, 45.0)

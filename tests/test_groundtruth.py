@@ -1,0 +1,68 @@
+import numpy as np
+
+from mitsuba_active.cameras import fibonacci_sphere
+from mitsuba_active.groundtruth import GroundTruth
+from mitsuba_active.scene import load_scene
+
+
+def _ray_sphere(o, d, r):
+    b = np.sum(o * d, axis=1)
+    disc = b * b - (np.sum(o * o, axis=1) - r * r)
+    t = -b - np.sqrt(np.maximum(disc, 0))
+    return np.where(disc > 0, t, 0.0)
+
+
+def test_distance_matches_the_analytic_sphere(sphere_xml, cache_dir):
+    from mitsuba_active.cameras import camera_rays
+
+    scene = load_scene(sphere_xml)
+    gt = GroundTruth(scene, spp=4, cache_dir=cache_dir)
+    for cam in fibonacci_sphere(3, [0, 0, 0], 1.7, 45.0, 32, 24):
+        view = gt.render(cam)
+        o, d = camera_rays(cam)
+        # The icosphere's facets lie inside the radius-0.5 sphere: allow the tessellation gap.
+        expected = _ray_sphere(o.astype(np.float64), d.astype(np.float64), 0.5).reshape(24, 32)
+        inner = (expected > 0) & view.mask
+        rel = np.abs(view.distance[inner] - expected[inner]) / expected[inner]
+        assert inner.sum() > 100
+        assert rel.max() < 0.01
+        assert (view.distance[~view.mask] == 0).all()
+        assert view.rgb.shape == (24, 32, 3) and 0 <= view.rgb.min() and view.rgb.max() <= 1
+
+
+def test_distance_is_from_the_optical_centre_not_the_near_plane(sphere_xml):
+    scene = load_scene(sphere_xml)
+    cam = fibonacci_sphere(1, [0, 0, 0], 2.0, 30.0, 9, 9)[0]
+    from mitsuba_active.cameras import Camera
+
+    far_near = Camera(cam.to_world, cam.fov, 9, 9, near=1.0)
+    gt = GroundTruth(scene, spp=1, cache_dir=False)
+    assert abs(gt.render(far_near).distance[4, 4] - 1.5) < 0.01  # not 0.5
+
+
+def test_cache_is_content_addressed_and_atomic(spot_xml, cache_dir):
+    scene = load_scene(spot_xml)
+    cam_a, cam_b = fibonacci_sphere(2, scene.center, 2.2, 40.0, 16, 16)
+    gt = GroundTruth(scene, spp=4, cache_dir=cache_dir)
+    first = gt.render(cam_a)
+    files = sorted(cache_dir.rglob("*"))
+    exrs = [f for f in files if f.suffix == ".exr"]
+    assert len(exrs) == 1 and not [f for f in files if f.name.startswith(".")]
+    again = gt.render(cam_a)
+    assert np.array_equal(first.rgb, again.rgb) and np.array_equal(first.distance, again.distance)
+    assert gt.key(cam_a) != gt.key(cam_b)
+    assert gt.key(cam_a) != GroundTruth(scene, spp=8, cache_dir=cache_dir).key(cam_a)
+    # A damaged entry is rendered again, not trusted.
+    exrs[0].write_bytes(b"not an exr")
+    assert np.array_equal(gt.render(cam_a).distance, first.distance)
+
+
+def test_shared_scenes_render_plausibly(shared_data):
+    from tests.conftest import tiny_source
+
+    for rel in ("mitsuba/simple/scene.xml", "mitsuba/cbox/cbox.xml"):
+        src = tiny_source(shared_data / rel, n_candidates=4, n_heldout=2)
+        view = src.candidate_view(0)
+        assert view.mask.any() and view.rgb[view.mask].mean() > 0.02
+        if src.scene.interior:
+            assert view.mask.mean() > 0.5  # inside the room (open at the front) most rays meet a wall

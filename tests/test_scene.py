@@ -1,0 +1,66 @@
+import numpy as np
+import mitsuba as mi
+import pytest
+
+from mitsuba_active.errors import UserError
+from mitsuba_active.scene import load_scene, normalise_vertices, scene_from_mesh
+
+
+def test_spot_scene_is_textured_normalised_and_loads_in_plain_mitsuba(spot_xml):
+    text = spot_xml.read_text()
+    assert 'type="bitmap"' in text and "spot_texture.png" in text
+    assert (spot_xml.parent / "spot.ply").is_file()
+    plain = mi.load_file(str(spot_xml))  # no mitsuba_active code involved
+    bbox = plain.bbox()
+    extent = np.array(bbox.max) - np.array(bbox.min)
+    assert np.isclose(extent.max(), 1.0, atol=1e-4)
+    assert np.allclose(np.array(bbox.max) + np.array(bbox.min), 0.0, atol=1e-4)
+
+
+def test_up_axis_rotates_z_up_meshes_to_y_up():
+    v = np.array([[0, 0, 0], [0.1, 0.2, 3.0]])  # tall along z
+    y_up = normalise_vertices(v, "z")
+    assert np.ptp(y_up[:, 1]) == pytest.approx(1.0)
+    assert np.ptp(normalise_vertices(v, "y")[:, 2]) == pytest.approx(1.0)
+    with pytest.raises(UserError):
+        normalise_vertices(v, "x")
+
+
+def test_lights_floor_and_plain_colour(tmp_path, shared_data):
+    xml = scene_from_mesh(shared_data / "meshes" / "suzanne.obj", tmp_path / "s.xml", sun=True, point_lights=2,
+                          floor=True, color=(0.2, 0.4, 0.8))
+    text = xml.read_text()
+    assert 'type="directional"' in text and text.count('type="point"') == 2
+    assert 'id="floor"' in text and "0.2 0.4 0.8" in text and "bitmap" not in text
+    scene = load_scene(xml)
+    assert scene.bbox_max[0] - scene.bbox_min[0] > 3.0  # the floor widens the bounds
+    assert len(scene.mi_scene.emitters()) == 4
+
+
+@pytest.mark.parametrize("rel,interior", [("mitsuba/simple/scene.xml", False), ("mitsuba/cbox/cbox.xml", True),
+                                          ("mitsuba/cbox/cbox-rgb.xml", True)])
+def test_shared_mitsuba_scenes_load_unchanged(shared_data, rel, interior):
+    scene = load_scene(shared_data / rel)
+    assert scene.interior is interior
+    assert len(scene.sensors) == 1 and scene.sensors[0].width == 256
+    assert (scene.bbox_max > scene.bbox_min).all()
+
+
+def test_simple_scene_is_z_up(shared_data):
+    assert np.allclose(load_scene(shared_data / "mitsuba/simple/scene.xml").up, [0, 0, 1])
+
+
+def test_content_hash_follows_referenced_files(tmp_path, shared_data):
+    a = scene_from_mesh(shared_data / "meshes" / "suzanne.obj", tmp_path / "a" / "s.xml")
+    b = scene_from_mesh(shared_data / "meshes" / "suzanne.obj", tmp_path / "b" / "s.xml", color=(0.1, 0.1, 0.1))
+    h1 = load_scene(a).content_hash
+    assert h1 == load_scene(a).content_hash
+    assert h1 != load_scene(b).content_hash
+    (tmp_path / "a" / "suzanne.ply").write_bytes((tmp_path / "b" / "suzanne.ply").read_bytes()[:-12] + b"\0" * 12)
+    assert load_scene(a).content_hash != h1
+
+
+def test_interior_free_space(shared_data):
+    scene = load_scene(shared_data / "mitsuba/cbox/cbox.xml")
+    inside_box = [185.0, 80.0, 169.0]
+    assert scene.free_space(np.array([scene.center, inside_box])).tolist() == [True, False]

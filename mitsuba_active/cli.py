@@ -120,5 +120,86 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
     click.echo(f"wrote {len(cams)} views to {out}")
 
 
+def _parse_counts(text: str) -> list[int]:
+    try:
+        counts = [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise UserError(f"--eval-views takes comma-separated view counts, got '{text}'") from None
+    if not counts or min(counts) <= 0:
+        raise UserError(f"--eval-views needs positive view counts, got '{text}'")
+    return counts
+
+
+@main.command()
+@click.argument("scene_path", required=False, type=click.Path())
+@click.option("--planner", default="rfe", show_default=True,
+              help="View planner: rfe, fisher, coverage, even or random.")
+@click.option("--budget", type=int, default=20, show_default=True, help="Views captured in total.")
+@click.option("--initial-views", type=int, default=2, show_default=True, help="Random views before planning.")
+@click.option("--ensemble", type=int, default=2, show_default=True, help="Fields K in the planner's ensemble.")
+@click.option("--batch", type=int, default=1, show_default=True, help="Views chosen per round.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@_rig_options
+@click.option("--downscale", type=int, default=None, help="Image downscale of a dataset [to fit --resolution].")
+@click.option("--rays-per-candidate", type=int, default=256, show_default=True,
+              help="Sparse rays scored per candidate view.")
+@click.option("--score", "score_form", type=click.Choice(["sum", "log"]), default="sum", show_default=True,
+              help="rfe: sum of variances or sum of log-variances.")
+@click.option("--steps-per-view", type=int, default=None, help="Ensemble training steps per captured view.")
+@click.option("--eval-views", default="5,10,15,20", show_default=True, help="View counts to evaluate at.")
+@click.option("--eval-steps", type=int, default=None, help="Training steps of each evaluation field.")
+@click.option("--distance-weight", type=float, default=0.0, show_default=True,
+              help="Weight of the distance loss (0: photometric only).")
+@click.option("--out", "out", type=click.Path(file_okay=False), default=None,
+              help="Run folder [runs/SCENE-PLANNER-seedN]; an unfinished run there is resumed.")
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+@_one_line_errors
+def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig, n_candidates, n_heldout,
+         resolution, fov, spp, downscale, rays_per_candidate, score_form, steps_per_view, eval_views, eval_steps,
+         distance_weight, out, quiet):
+    """Choose views of SCENE_PATH with a planner and report reconstruction quality.
+
+    SCENE_PATH is a Mitsuba scene XML, a transforms.json (or a folder holding
+    one), or nothing for the bundled scene. Writes run.json, metrics.csv,
+    plots, a contact sheet of the chosen views and held-out renders.
+    """
+    from .planners import make_planner
+    from .run import Run, RunConfig, default_out_dir
+    from .datasets import open_source
+
+    scene_path = str(scene_path or BUNDLED_SCENE)
+    options = {"form": score_form} if planner == "rfe" else {}
+    make_planner(planner, **options)  # unknown planner: fail before any rendering
+    cfg = RunConfig(scene=scene_path, planner=planner, planner_options=options, budget=budget,
+                    initial_views=initial_views, ensemble=ensemble, batch=batch, seed=seed,
+                    resolution=resolution, candidates=n_candidates, heldout=n_heldout, rig=rig, fov=fov, spp=spp,
+                    downscale=downscale, rays_per_candidate=rays_per_candidate,
+                    eval_views=_parse_counts(eval_views), distance_weight=distance_weight)
+    if steps_per_view is not None:
+        cfg.steps_per_view = steps_per_view
+    if eval_steps is not None:
+        cfg.eval_steps = eval_steps
+    cfg.validate()
+    source = open_source(scene_path, rig=rig, n_candidates=n_candidates, n_heldout=n_heldout,
+                         resolution=resolution, fov=fov, spp=spp, downscale=downscale)
+    out = Path(out) if out else default_out_dir(scene_path, planner, seed)
+    record = Run(source, cfg, out, progress=not quiet, log=lambda m: click.echo(m, err=True)).execute()
+    rows = ", ".join(f"{m['views']}: {m['psnr']:.2f} dB" for m in record["metrics"])
+    click.echo(f"held-out PSNR by views captured: {rows}")
+    click.echo(f"results in {out}")
+
+
+@main.command()
+@click.argument("run_dir", type=click.Path(file_okay=False))
+@click.option("-o", "--output", "out", type=click.Path(file_okay=False), default=None,
+              help="Dataset folder [RUN_DIR/export].")
+@_one_line_errors
+def export(run_dir, out):
+    """Export a run's chosen views as a transforms.json dataset (nerfstudio / instant-ngp)."""
+    from .export import export_transforms
+
+    click.echo(f"wrote {export_transforms(run_dir, out)}")
+
+
 if __name__ == "__main__":
     main()

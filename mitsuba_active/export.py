@@ -1,0 +1,65 @@
+"""Export a run's chosen views as a transforms.json dataset (nerfstudio / instant-ngp).
+
+Poses are converted to the OpenGL/Blender camera convention (camera looks
+along -Z, +Y up) that those tools expect. Each frame carries its PNG image
+and an EXR with the distance from the optical centre (channel ``Z``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from .cameras import MITSUBA_TO_OPENGL, Camera
+from .errors import UserError
+from .imageio_utils import atomic_write
+
+
+def export_transforms(run_dir, out_dir=None) -> Path:
+    """Write ``transforms.json``, ``images/`` and ``distance/`` for a run; returns the JSON path."""
+    run_dir = Path(run_dir)
+    rec_path = run_dir / "run.json"
+    if not rec_path.is_file():
+        raise UserError(f"{run_dir} is not a run folder (no run.json)")
+    try:
+        rec = json.loads(rec_path.read_text())
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{rec_path} is damaged: {exc}") from None
+    out = Path(out_dir) if out_dir else run_dir / "export"
+    cams = [Camera.from_dict(rec["candidates"][i]) for i in rec["captured"]]
+    if not cams:
+        raise UserError(f"{run_dir} has no captured views to export")
+    missing = [n for n in range(len(cams)) if not (run_dir / "views" / f"view_{n:03d}.png").is_file()]
+    if missing:
+        raise UserError(f"{run_dir}/views is missing images for views {missing}")
+    ref = cams[0]
+    fl = 0.5 * ref.width / math.tan(math.radians(ref.fov) / 2)
+    frames = []
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    (out / "distance").mkdir(parents=True, exist_ok=True)
+    for n, (cam, index) in enumerate(zip(cams, rec["captured"])):
+        img, dist = f"images/view_{n:03d}.png", f"distance/view_{n:03d}.exr"
+        shutil.copyfile(run_dir / "views" / f"view_{n:03d}.png", out / img)
+        shutil.copyfile(run_dir / "views" / f"view_{n:03d}.exr", out / dist)
+        frames.append({"file_path": img, "distance_file_path": dist, "candidate": int(index),
+                       "transform_matrix": (cam.to_world @ MITSUBA_TO_OPENGL).tolist()})
+    data = {"camera_model": "OPENCV", "camera_angle_x": math.radians(ref.fov),
+            "fl_x": fl, "fl_y": fl, "cx": ref.width / 2, "cy": ref.height / 2, "w": ref.width, "h": ref.height,
+            "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
+            "distance_note": "distance_file_path: EXR channel Z, distance from the optical centre in scene "
+                             "units along each pixel-centre ray (not depth); 0 where nothing is hit",
+            "frames": frames}
+    path = out / "transforms.json"
+    with atomic_write(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=1))
+    return path
+
+
+def read_transforms_poses(path) -> list[np.ndarray]:
+    """Camera-to-world matrices (Mitsuba convention) read back from a transforms.json."""
+    data = json.loads(Path(path).read_text())
+    return [np.array(f["transform_matrix"], dtype=np.float64) @ MITSUBA_TO_OPENGL for f in data["frames"]]

@@ -1,0 +1,71 @@
+"""Image and geometry metrics, and the robust statistics used in reports.
+
+All image inputs are float arrays in [0, 1] of shape (H, W, 3); distances
+are (H, W) in scene units with a boolean hit mask.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def psnr(pred: np.ndarray, target: np.ndarray) -> float:
+    """Peak signal-to-noise ratio in dB for images in [0, 1]."""
+    mse = float(np.mean((np.asarray(pred, np.float64) - np.asarray(target, np.float64)) ** 2))
+    return float("inf") if mse == 0 else -10.0 * np.log10(mse)
+
+
+def _gaussian_blur(img: np.ndarray, sigma=1.5, radius=5) -> np.ndarray:
+    """Separable Gaussian filter over the first two axes, 'valid' region only."""
+    x = np.arange(-radius, radius + 1, dtype=np.float64)
+    k = np.exp(-0.5 * (x / sigma) ** 2)
+    k /= k.sum()
+    out = np.apply_along_axis(lambda r: np.convolve(r, k, mode="valid"), 0, img)
+    return np.apply_along_axis(lambda r: np.convolve(r, k, mode="valid"), 1, out)
+
+
+def ssim(pred: np.ndarray, target: np.ndarray) -> float:
+    """Structural similarity (Wang et al. 2004): 11x11 Gaussian window, sigma 1.5, mean over channels."""
+    a, b = np.asarray(pred, np.float64), np.asarray(target, np.float64)
+    if min(a.shape[:2]) < 11:
+        raise ValueError("SSIM needs images of at least 11x11 pixels")
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    mu_a, mu_b = _gaussian_blur(a), _gaussian_blur(b)
+    var_a = _gaussian_blur(a * a) - mu_a ** 2
+    var_b = _gaussian_blur(b * b) - mu_b ** 2
+    cov = _gaussian_blur(a * b) - mu_a * mu_b
+    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
+    return float(np.mean(s))
+
+
+def distance_error(pred: np.ndarray, target: np.ndarray, mask: np.ndarray) -> float:
+    """Mean relative distance error in percent over pixels that hit geometry (NaN if none)."""
+    m = np.asarray(mask, bool) & (np.asarray(target) > 0)
+    if not m.any():
+        return float("nan")
+    return float(100.0 * np.mean(np.abs(pred[m] - target[m]) / target[m]))
+
+
+def iqm(values) -> float:
+    """Interquartile mean: the mean of the middle 50% of the sorted values.
+
+    With n values, a quarter (n/4, fractional at the edges) is cut at each
+    end and the remaining weight averaged, as in Agarwal et al. (2021).
+    """
+    x = np.sort(np.asarray(values, dtype=np.float64).ravel())
+    n = len(x)
+    if n == 0:
+        return float("nan")
+    if n < 4:
+        return float(np.mean(x))
+    # Each sample covers [i, i+1) of [0, n); keep the part inside [n/4, 3n/4].
+    lo, hi = n / 4.0, 3.0 * n / 4.0
+    i = np.arange(n)
+    w = np.clip(np.minimum(i + 1, hi) - np.maximum(i, lo), 0.0, 1.0)
+    return float(np.sum(w * x) / np.sum(w))
+
+
+def standard_error(values) -> float:
+    """Standard error of the mean, std (ddof=1) / sqrt(n); 0 for a single value."""
+    x = np.asarray(values, dtype=np.float64).ravel()
+    return 0.0 if len(x) < 2 else float(np.std(x, ddof=1) / np.sqrt(len(x)))

@@ -1,0 +1,81 @@
+"""The planner interface and the registry by name."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import UserError
+
+
+@dataclass
+class PlanningState:
+    """What a planner may look at when choosing views.
+
+    Attributes:
+        candidates: the candidate :class:`~mitsuba_active.cameras.Camera` list.
+        captured: indices of candidates captured so far (repeats possible).
+        ensemble: the trained :class:`~mitsuba_active.field.Ensemble`, or None
+            for planners that do not need one.
+        candidate_rays: ``(origins, directions)``, each (C, R, 3) float32: a
+            fixed sparse set of R rays per candidate.
+        rng: the run's ``numpy.random.Generator``.
+    """
+
+    candidates: list
+    captured: list
+    ensemble: object = None
+    candidate_rays: tuple | None = None
+    rng: np.random.Generator = field(default_factory=np.random.default_rng)
+
+
+class Planner:
+    """Chooses the next views. Subclasses set ``name`` and implement :meth:`select`."""
+
+    name = "planner"
+    needs_ensemble = False
+
+    def select(self, state: PlanningState, batch: int) -> tuple[list[int], np.ndarray | None]:
+        """Return ``batch`` candidate indices and the per-candidate scores (C,) they were chosen by, or None."""
+        raise NotImplementedError
+
+    def options(self) -> dict:
+        """The planner's settings, recorded in run.json."""
+        return {}
+
+
+def unseen(state: PlanningState) -> np.ndarray:
+    """Boolean mask (C,) of candidates not captured yet."""
+    mask = np.ones(len(state.candidates), dtype=bool)
+    mask[list(state.captured)] = False
+    return mask
+
+
+def greedy_top(scores: np.ndarray, allowed: np.ndarray, batch: int) -> list[int]:
+    """Indices of the ``batch`` best allowed scores, best first (ties: lower index)."""
+    s = np.where(allowed, scores, -np.inf)
+    order = np.lexsort((np.arange(len(s)), -s))
+    picks = [int(i) for i in order[:batch] if np.isfinite(s[i])]
+    if len(picks) < batch:
+        raise UserError(f"only {len(picks)} candidate views are left to choose from, asked for {batch}")
+    return picks
+
+
+REGISTRY: dict[str, type] = {}
+
+
+def register(cls):
+    """Class decorator: make a planner available by its ``name``."""
+    REGISTRY[cls.name] = cls
+    return cls
+
+
+def make_planner(name: str, **options) -> Planner:
+    """Instantiate a registered planner; unknown names and options raise UserError."""
+    if name not in REGISTRY:
+        raise UserError(f"unknown planner '{name}'; choose one of {', '.join(sorted(REGISTRY))}")
+    try:
+        return REGISTRY[name](**options)
+    except TypeError as exc:
+        raise UserError(f"bad option for planner '{name}': {exc}") from None

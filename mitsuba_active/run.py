@@ -1,0 +1,382 @@
+"""The acquisition loop and the evaluation protocol.
+
+One run: start from ``initial_views`` random candidates, then repeatedly
+let the planner choose ``batch`` views, capture them, and (for model-based
+planners) continue training the ensemble on all views so far (warm start),
+until ``budget`` views are captured.
+
+Evaluation follows the seed paper: at each reported view count a *fresh*
+field, with the same architecture, seed and steps for every planner, is
+trained on the views chosen so far and scored on the held-out views (PSNR,
+SSIM, and mean relative distance error on pixels that hit geometry).
+
+A run writes everything into one folder and keeps ``run.json`` current
+after every round, so an interrupted run resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .cameras import camera_rays
+from .env import ActiveViewEnv
+from .errors import UserError
+from .groundtruth import View
+from .imageio_utils import atomic_write, colorize, srgb_to_linear, write_exr, write_png
+from .metrics import distance_error, psnr, ssim
+from .planners import PlanningState, make_planner
+
+RUN_FORMAT = 1
+
+
+@dataclass
+class RunConfig:
+    """Settings of one planning run (recorded in run.json).
+
+    Attributes:
+        scene: scene XML, transforms.json or dataset folder.
+        planner: registered planner name; ``planner_options`` its settings.
+        budget: views captured in total (initial views included).
+        initial_views: random views captured before planning starts.
+        ensemble: number of fields K in the planner's ensemble.
+        batch: views chosen per round.
+        seed: seeds initial views, planner randomness and all fields.
+        resolution, candidates, heldout, rig, fov, spp: the environment (scene sources).
+        downscale: image downscale factor (dataset sources; None: automatic).
+        rays_per_candidate: the sparse rays a planner scores per candidate.
+        initial_steps, steps_per_view: ensemble training (steps per captured view, warm start).
+        eval_views: view counts at which the evaluation field is trained and scored.
+        eval_steps: training steps of each evaluation field.
+        distance_weight: weight of the distance loss (0: photometric only, as in the seed paper).
+        field: overrides of :class:`~mitsuba_active.field.FieldConfig` options
+            (e.g. ``{"n_samples": 32}``), for the planner's ensemble and the evaluation field alike.
+    """
+
+    scene: str = ""
+    planner: str = "rfe"
+    planner_options: dict = field(default_factory=dict)
+    budget: int = 20
+    initial_views: int = 2
+    ensemble: int = 2
+    batch: int = 1
+    seed: int = 0
+    resolution: int = 64
+    candidates: int = 100
+    heldout: int = 20
+    rig: str = "auto"
+    fov: float | None = None
+    spp: int = 64
+    downscale: int | None = None
+    rays_per_candidate: int = 256
+    initial_steps: int = 300
+    steps_per_view: int = 60
+    eval_views: list = field(default_factory=lambda: [5, 10, 15, 20])
+    eval_steps: int = 1500
+    distance_weight: float = 0.0
+    field: dict = field(default_factory=dict)
+
+    def validate(self, n_candidates: int | None = None) -> None:
+        checks = [
+            (self.budget > 0, f"the view budget must be positive, got {self.budget}"),
+            (0 <= self.initial_views <= self.budget,
+             f"initial views ({self.initial_views}) must be between 0 and the budget ({self.budget})"),
+            (self.ensemble >= 1, f"the ensemble needs at least one member, got {self.ensemble}"),
+            (self.batch >= 1, f"the batch must be at least 1, got {self.batch}"),
+            (self.resolution > 0, f"image resolution must be positive, got {self.resolution}"),
+            (self.rays_per_candidate > 0, "rays per candidate must be positive"),
+            (min(self.initial_steps, self.steps_per_view, self.eval_steps) >= 0, "training steps cannot be negative"),
+            (self.eval_steps > 0, "evaluation steps must be positive"),
+        ]
+        if n_candidates is not None:
+            checks.append((self.budget <= n_candidates, f"the view budget ({self.budget}) is larger than the number "
+                                                        f"of candidate views ({n_candidates})"))
+        for ok, message in checks:
+            if not ok:
+                raise UserError(message)
+
+    def report_counts(self) -> list[int]:
+        """View counts to evaluate: the requested ones within the budget, and the budget itself."""
+        counts = sorted({int(v) for v in self.eval_views if 0 < int(v) <= self.budget} | {self.budget})
+        return [c for c in counts if c >= max(self.initial_views, 1)]
+
+
+# ---------------------------------------------------------------------------
+# Rays of views
+# ---------------------------------------------------------------------------
+
+def view_rays(views: list[View]) -> dict:
+    """Flat training rays of captured views: origins, directions, rgb (M,3); distance (M,), hit (M,)."""
+    parts = [camera_rays(v.camera) for v in views]
+    return {
+        "origins": np.concatenate([o for o, _ in parts]),
+        "directions": np.concatenate([d for _, d in parts]),
+        "rgb": np.concatenate([v.rgb.reshape(-1, 3) for v in views]).astype(np.float32),
+        "distance": np.concatenate([v.distance.reshape(-1) for v in views]).astype(np.float32),
+        "hit": np.concatenate([v.mask.reshape(-1) for v in views]),
+    }
+
+
+def sparse_candidate_rays(candidates, n_rays: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A fixed random subset of R pixel rays per candidate: origins and directions, (C, R, 3) each."""
+    rng = np.random.default_rng(seed)
+    o_all, d_all = [], []
+    for cam in candidates:
+        o, d = camera_rays(cam)
+        idx = rng.choice(len(o), size=n_rays, replace=n_rays > len(o))
+        o_all.append(o[idx])
+        d_all.append(d[idx])
+    return np.stack(o_all), np.stack(d_all)
+
+
+def make_ensemble(source, cfg: RunConfig, n_members: int, seed: int):
+    from .field import Ensemble, FieldConfig
+
+    try:
+        config = FieldConfig(**{"distance_weight": cfg.distance_weight, **cfg.field})
+    except TypeError as exc:
+        raise UserError(f"unknown field option: {exc}") from None
+    return Ensemble(source.bbox_min, source.bbox_max, n_members=n_members, config=config, seed=seed)
+
+
+def train_on(ens, views: list[View], steps: int, progress: bool = False) -> None:
+    r = view_rays(views)
+    ens.set_rays(r["origins"], r["directions"], r["rgb"], r["distance"], r["hit"])
+    if steps > 0:
+        ens.train(steps, progress=progress)
+
+
+def predict_view(ens, camera) -> dict:
+    """Render a whole camera with a field or ensemble: images (H,W,3) / (H,W)."""
+    o, d = camera_rays(camera)
+    p = ens.predict(o, d)
+    h, w = camera.height, camera.width
+    return {"rgb": np.clip(p["rgb_mean"], 0, 1).reshape(h, w, 3), "rgb_var": p["rgb_var"].reshape(h, w, 3),
+            "distance": p["distance_mean"].reshape(h, w), "distance_var": p["distance_var"].reshape(h, w),
+            "opacity": p["opacity"].reshape(h, w)}
+
+
+def evaluate(source, views: list[View], cfg: RunConfig, progress: bool = False) -> tuple[dict, list[dict]]:
+    """Train a fresh evaluation field on ``views``; score it on every held-out view.
+
+    Returns the metrics (means over held-out views) and the per-view predictions.
+    """
+    t0 = time.perf_counter()
+    field_ = make_ensemble(source, cfg, 1, seed=cfg.seed + 7919)
+    train_on(field_, views, cfg.eval_steps, progress)
+    preds, p_list, s_list, d_list = [], [], [], []
+    for i, cam in enumerate(source.heldout):
+        gt = source.heldout_view(i)
+        pred = predict_view(field_, cam)
+        preds.append(pred)
+        p_list.append(psnr(pred["rgb"], gt.rgb))
+        s_list.append(ssim(pred["rgb"], gt.rgb) if min(gt.rgb.shape[:2]) >= 11 else float("nan"))
+        d_list.append(distance_error(pred["distance"], gt.distance, gt.mask))
+    metrics = {"views": len(views), "psnr": float(np.mean(p_list)), "ssim": float(np.nanmean(s_list)),
+               "distance_error": float(np.nanmean(d_list)) if not np.isnan(d_list).all() else None,
+               "eval_seconds": round(time.perf_counter() - t0, 3)}
+    return metrics, preds
+
+
+# ---------------------------------------------------------------------------
+# The run
+# ---------------------------------------------------------------------------
+
+class Run:
+    """One planning run in a folder; ``Run(...).execute()`` runs or resumes it."""
+
+    def __init__(self, source, cfg: RunConfig, out_dir, progress: bool = True, log=print):
+        cfg.validate(len(source.candidates))
+        self.source, self.cfg, self.out = source, cfg, Path(out_dir)
+        self.progress, self.log = progress, log
+        self.planner = make_planner(cfg.planner, **cfg.planner_options)
+        if self.planner.needs_ensemble and cfg.planner == "rfe" and cfg.ensemble < 2:
+            raise UserError("the rfe planner needs an ensemble of at least 2 members (--ensemble 2 or more)")
+        self.env = ActiveViewEnv(source, cfg.budget)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.record = None
+        self.ensemble = None
+
+    # -- persistence --------------------------------------------------------
+    @property
+    def record_path(self) -> Path:
+        return self.out / "run.json"
+
+    def _config_dict(self) -> dict:
+        return json.loads(json.dumps(asdict(self.cfg)))
+
+    def _load_or_start(self) -> bool:
+        """Load an unfinished run from the folder; True when resuming."""
+        if self.record_path.is_file():
+            try:
+                rec = json.loads(self.record_path.read_text())
+            except (OSError, json.JSONDecodeError) as exc:
+                raise UserError(f"{self.record_path} is damaged ({exc}); remove it to start over") from None
+            if rec.get("config") != self._config_dict():
+                raise UserError(f"{self.out} holds a run with other settings; choose another --out folder")
+            self.record = rec
+            return True
+        self.record = {"format": RUN_FORMAT, "config": self._config_dict(),
+                       "planner_options": self.planner.options(), "scene": self.source.name,
+                       "candidates": [c.to_dict() for c in self.source.candidates],
+                       "heldout": [c.to_dict() for c in self.source.heldout],
+                       "captured": [], "rounds": [], "metrics": [], "finished": False}
+        return False
+
+    def _save_record(self) -> None:
+        self.record["rng_state"] = self.rng.bit_generator.state
+        with atomic_write(self.record_path) as tmp:
+            tmp.write_text(json.dumps(self.record, indent=1, default=_json_default))
+
+    def _save_ensemble(self) -> None:
+        if self.ensemble is not None:
+            with atomic_write(self.out / "ensemble.npz") as tmp:
+                self.ensemble.save(str(tmp))
+
+    def _save_view(self, n: int, index: int, view: View) -> None:
+        stem = self.out / "views" / f"view_{n:03d}"
+        write_png(stem.with_suffix(".png"), view.rgb)
+        write_exr(stem.with_suffix(".exr"), {"RGB": srgb_to_linear(view.rgb), "Z": view.distance})
+
+    # -- the loop -----------------------------------------------------------
+    def execute(self) -> dict:
+        from tqdm import tqdm
+
+        self.out.mkdir(parents=True, exist_ok=True)
+        resumed = self._load_or_start()
+        cfg = self.cfg
+        if resumed:
+            self.rng.bit_generator.state = self.record["rng_state"]
+            self.env.reset(seed=cfg.seed, options={"initial_views": 0})
+            for i in self.record["captured"]:
+                self.env._capture(int(i))
+            self.log(f"resuming {self.out}: {len(self.env.captured)} of {cfg.budget} views captured")
+        else:
+            self.env.reset(seed=cfg.seed, options={"initial_views": cfg.initial_views})
+            self.record["captured"] = list(self.env.captured)
+            for n, (i, v) in enumerate(zip(self.env.captured, self.env.views)):
+                self._save_view(n, i, v)
+        if self.record["finished"]:
+            self.log(f"{self.out} is already complete")
+            return self.record
+
+        state = PlanningState(self.source.candidates, self.env.captured, None, None, self.rng)
+        if self.planner.needs_ensemble:
+            state.candidate_rays = sparse_candidate_rays(self.source.candidates, cfg.rays_per_candidate,
+                                                         cfg.seed + 1)
+            self.ensemble = make_ensemble(self.source, cfg, cfg.ensemble, cfg.seed)
+            ens_path = self.out / "ensemble.npz"
+            if resumed and ens_path.is_file():
+                from .field import Ensemble
+
+                self.ensemble = Ensemble.load(str(ens_path))
+                train_on(self.ensemble, self.env.views, 0)
+            elif self.env.views:
+                train_on(self.ensemble, self.env.views, cfg.initial_steps + cfg.steps_per_view * len(self.env.views),
+                         self.progress)
+            state.ensemble = self.ensemble
+        self._save_record()
+
+        bar = tqdm(total=cfg.budget, initial=len(self.env.captured), desc=f"{cfg.planner}", unit="view",
+                   disable=not self.progress)
+        while True:
+            self._evaluate_due()
+            if self.env.terminated:
+                break
+            b = min(cfg.batch, cfg.budget - len(self.env.captured))
+            t0 = time.perf_counter()
+            picks, scores = self.planner.select(state, b)
+            t_select = time.perf_counter() - t0
+            for i in picks:
+                self.env.step(int(i))
+                self._save_view(len(self.env.captured) - 1, int(i), self.env.views[-1])
+            t1 = time.perf_counter()
+            if self.ensemble is not None:
+                train_on(self.ensemble, self.env.views, cfg.steps_per_view * b)
+            self.record["captured"] = list(self.env.captured)
+            self.record["rounds"].append({
+                "views": len(self.env.captured), "picks": [int(i) for i in picks],
+                "poses": [self.source.candidates[int(i)].to_world.tolist() for i in picks],
+                "scores": None if scores is None else [float(s) for s in scores],
+                "select_seconds": round(t_select, 4), "train_seconds": round(time.perf_counter() - t1, 4)})
+            self._save_ensemble()
+            self._save_record()
+            bar.update(len(picks))
+        bar.close()
+        self._write_outputs()
+        self.record["finished"] = True
+        self._save_record()
+        return self.record
+
+    def _evaluate_due(self) -> None:
+        done = {m["views"] for m in self.record["metrics"]}
+        n = len(self.env.captured)
+        for count in self.cfg.report_counts():
+            if count <= n and count not in done:
+                metrics, preds = evaluate(self.source, self.env.views[:count], self.cfg)
+                self.record["metrics"].append(metrics)
+                self.record["metrics"].sort(key=lambda m: m["views"])
+                self._last_preds = preds
+                dist = "n/a" if metrics["distance_error"] is None else f"{metrics['distance_error']:.2f}%"
+                self.log(f"  {count:3d} views: PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.3f}, "
+                         f"distance error {dist}")
+                self._save_record()
+
+    # -- results ------------------------------------------------------------
+    def _write_outputs(self) -> None:
+        from .report import contact_sheet, plot_metrics
+
+        write_metrics_csv(self.out / "metrics.csv", self.record["metrics"])
+        plot_metrics({self.cfg.planner: self.record["metrics"]}, self.out, title=self.source.name)
+        sheet = [self.out / "views" / f"view_{n:03d}.png" for n in range(len(self.env.captured))]
+        contact_sheet(sheet, [f"#{n} cand {i}" for n, i in enumerate(self.env.captured)],
+                      self.out / "chosen_views.png")
+        preds = getattr(self, "_last_preds", None)
+        if preds is None:  # resumed after the last evaluation: score again to get images
+            _, preds = evaluate(self.source, self.env.views, self.cfg)
+        self._write_heldout(preds)
+
+    def _write_heldout(self, preds: list[dict]) -> None:
+        folder = self.out / "heldout"
+        for i, pred in enumerate(preds):
+            gt = self.source.heldout_view(i)
+            stem = folder / f"heldout_{i:03d}"
+            write_png(f"{stem}_pred.png", pred["rgb"])
+            write_png(f"{stem}_gt.png", gt.rgb)
+            write_exr(f"{stem}_pred.exr", {"RGB": srgb_to_linear(pred["rgb"]), "Z": pred["distance"]})
+            write_exr(f"{stem}_gt.exr", {"RGB": srgb_to_linear(gt.rgb), "Z": gt.distance})
+            if self.ensemble is not None:
+                ens_pred = predict_view(self.ensemble, self.source.heldout[i])
+                var = ens_pred["rgb_var"].mean(axis=2)
+                write_exr(f"{stem}_variance.exr", {"RGB": ens_pred["rgb_var"], "Z": ens_pred["distance_var"]})
+                write_png(f"{stem}_variance.png", colorize(var, vmin=0.0))
+
+
+def write_metrics_csv(path, metrics: list[dict]) -> None:
+    cols = ["views", "psnr", "ssim", "distance_error", "eval_seconds"]
+    with atomic_write(path) as tmp, open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=cols, extrasaction="ignore")
+        w.writeheader()
+        for m in metrics:
+            w.writerow(m)
+
+
+def _json_default(o):
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    raise TypeError(f"cannot store {type(o).__name__} in run.json")
+
+
+def default_out_dir(scene_path, planner: str, seed: int) -> Path:
+    stem = Path(scene_path).stem if Path(scene_path).suffix else Path(scene_path).name
+    return Path("runs") / f"{stem}-{planner}-seed{seed}"

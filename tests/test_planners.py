@@ -1,0 +1,75 @@
+import numpy as np
+import pytest
+
+from mitsuba_active.cameras import fibonacci_sphere
+from mitsuba_active.errors import UserError
+from mitsuba_active.planners import PlanningState, make_planner, names
+from mitsuba_active.planners.fisher import greedy_fisher
+from mitsuba_active.planners.rfe import rfe_scores
+
+CANDS = fibonacci_sphere(12, [0, 0, 0], 2.0, 40.0, 8, 8)
+
+
+def test_registry_and_unknown_names():
+    assert set(names()) == {"random", "even", "rfe", "fisher", "coverage"}
+    with pytest.raises(UserError, match="unknown planner"):
+        make_planner("oracle")
+    with pytest.raises(UserError):
+        make_planner("rfe", form="median")
+
+
+def test_even_never_repeats_and_runs_out():
+    planner, state = make_planner("even"), PlanningState(CANDS, [], rng=np.random.default_rng(0))
+    for _ in range(4):
+        picks, _ = planner.select(state, 3)
+        state.captured.extend(picks)
+    assert sorted(state.captured) == list(range(12))
+    with pytest.raises(UserError):
+        planner.select(state, 1)
+
+
+def test_random_samples_with_replacement_uniformly():
+    planner, state = make_planner("random"), PlanningState(CANDS, [0, 1, 2], rng=np.random.default_rng(1))
+    picks, _ = planner.select(state, 2400)
+    counts = np.bincount(picks, minlength=12)
+    assert len(set(picks)) < len(picks)  # repeats happen
+    assert counts[:3].min() > 0  # captured views can be drawn again
+    assert np.abs(counts / 200.0 - 1.0).max() < 0.3
+
+
+def test_coverage_picks_the_direction_farthest_from_captured():
+    planner = make_planner("coverage")
+    state = PlanningState(CANDS, [0], rng=np.random.default_rng(0))
+    picks, scores = planner.select(state, 1)
+    dirs = np.stack([c.forward for c in CANDS])
+    assert picks[0] == int(np.argmin(dirs @ dirs[0]))
+    assert scores[0] == 0.0
+
+
+def test_rfe_score_forms():
+    v = np.zeros((3, 4, 3))
+    v[1] = 0.01
+    v[2, 0] = 0.5  # one very uncertain ray
+    assert rfe_scores(v, "sum").argmax() == 2
+    assert rfe_scores(v, "log").argmax() == 1  # log form rewards broad uncertainty
+
+
+def test_fisher_choice_is_invariant_to_rescaling():
+    rng = np.random.default_rng(3)
+    h_c, h_t = rng.random((8, 50)) ** 3, rng.random(50)
+    allowed = np.ones(8, bool)
+    allowed[2] = False
+    picks, scores = greedy_fisher(h_c, h_t, allowed, 3)
+    picks2, scores2 = greedy_fisher(1e6 * h_c, 1e6 * h_t, allowed, 3)
+    assert picks == picks2 and 2 not in picks
+    assert np.allclose(scores, scores2)
+
+
+
+def test_fisher_batches_fold_each_pick_into_the_training_information():
+    h = np.zeros((3, 4))
+    h[0, :2] = h[1, :2] = 1.0  # two views that inform the same parameters
+    h[2, 2:] = 0.8  # a slightly weaker view of other parameters
+    picks, scores = greedy_fisher(h, np.zeros(4), np.ones(3, bool), 2)
+    assert scores.argmax() in (0, 1) and picks[0] == 0
+    assert picks[1] == 2  # not the duplicate, whose information is already counted

@@ -201,5 +201,31 @@ def export(run_dir, out):
     click.echo(f"wrote {export_transforms(run_dir, out)}")
 
 
+@main.command()
+@click.argument("suite", type=click.Path(dir_okay=False))
+@click.option("--out", "out", type=click.Path(file_okay=False), default=None,
+              help="Suite folder [bench/SUITE-PROFILE]; finished runs there are kept and skipped.")
+@click.option("--profile", type=click.Choice(["quick", "full"]), default="quick", show_default=True,
+              help="quick: small images and few steps, one seed; full: paper-like settings, five seeds.")
+@click.option("--workers", type=int, default=1, show_default=True, help="Parallel worker processes.")
+@click.option("--seeds", default=None, help="Comma-separated seeds [the profile's].")
+@click.option("--planners", default=None, help="Comma-separated planners [the suite's].")
+@click.option("--scenes", default=None, help="Comma-separated scene names [all].")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+@_one_line_errors
+def bench(suite, out, profile, workers, seeds, planners, scenes, quiet):
+    """Run a benchmark SUITE (TOML): scenes x planners x seeds; write tables and plots."""
+    from .bench import run_suite
+
+    split = lambda s: [x.strip() for x in s.split(",") if x.strip()] if s else None  # noqa: E731
+    try:
+        seed_list = [int(x) for x in split(seeds)] if seeds else None
+    except ValueError:
+        raise UserError(f"--seeds takes comma-separated integers, got '{seeds}'") from None
+    out = Path(out) if out else Path("bench") / f"{Path(suite).stem}-{profile}"
+    run_suite(suite, out, profile, workers, seed_list, split(planners), split(scenes), progress=not quiet)
+    click.echo(f"tables and plots in {out / 'report'}")
+
+
 if __name__ == "__main__":
     main()

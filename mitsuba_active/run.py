@@ -230,6 +230,9 @@ class Run:
         return False
 
     def _save_record(self) -> None:
+        now = time.perf_counter()
+        self.record["wall_seconds"] = round(self.record.get("wall_seconds", 0.0) + now - self._clock, 3)
+        self._clock = now
         self.record["rng_state"] = self.rng.bit_generator.state
         with atomic_write(self.record_path) as tmp:
             tmp.write_text(json.dumps(self.record, indent=1, default=_json_default))
@@ -248,6 +251,7 @@ class Run:
     def execute(self) -> dict:
         from tqdm import tqdm
 
+        self._clock = time.perf_counter()  # wall time accumulates across resumes
         self.out.mkdir(parents=True, exist_ok=True)
         resumed = self._load_or_start()
         cfg = self.cfg

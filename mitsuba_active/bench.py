@@ -1,0 +1,319 @@
+"""Benchmark suites: scenes x planners x seeds, run in parallel, reported as tables and plots.
+
+A suite is a TOML file (see ``benchmarks/suites/shared.toml``)::
+
+    name = "mine"
+    planners = ["random", "even", "rfe"]
+    [defaults]              # RunConfig fields for every scene
+    candidates = 100
+    [[scenes]]
+    name = "spot"
+    mesh = "meshes/spot.obj"   # authored with scene_from_mesh (options: up, color, sun, floor, ...)
+    [[scenes]]
+    name = "room"
+    xml = "room.xml"           # any Mitsuba scene
+    rig = "interior"           # per-scene RunConfig overrides
+
+Each (scene, planner, seed) is one :class:`~mitsuba_active.run.Run` with its
+own folder and run.json, so an interrupted suite resumes where it stopped.
+Every run has budget 20 and is evaluated at 5, 10, 15 and 20 views; the
+tables report 10 and 20 views, as the seed paper does.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import tomllib
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from .errors import UserError
+from .imageio_utils import atomic_write
+from .metrics import iqm, standard_error
+
+SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture")
+
+#: Settings of the two profiles. ``quick`` finishes the bundled suite's
+#: subset in minutes on two cores; ``full`` uses paper-like settings.
+PROFILES = {
+    "quick": dict(seeds=[0], resolution=32, candidates=30, heldout=8, spp=16, ensemble=2,
+                  initial_steps=100, steps_per_view=20, eval_steps=250, rays_per_candidate=64,
+                  field={"batch_rays": 1024, "n_samples": 32}),
+    "full": dict(seeds=[0, 1, 2, 3, 4], resolution=64, candidates=100, heldout=20, spp=64, ensemble=2),
+}
+TABLE_VIEWS = (10, 20)
+
+
+@dataclass
+class SuiteScene:
+    name: str
+    path: Path  # mesh or XML
+    kind: str  # "mesh" or "xml"
+    scene_options: dict = field(default_factory=dict)
+    run_options: dict = field(default_factory=dict)
+
+
+@dataclass
+class Suite:
+    name: str
+    planners: list
+    scenes: list
+    defaults: dict
+
+
+def load_suite(path) -> Suite:
+    """Parse and check a suite file; UserError on anything malformed."""
+    from .planners import make_planner
+    from .run import RunConfig
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"suite file not found: {path}")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"malformed suite file {path}: {exc}") from None
+    run_fields = {f.name for f in fields(RunConfig)}
+    planners = data.get("planners", ["random", "even", "rfe"])
+    for p in planners:
+        make_planner(p)
+    defaults = data.get("defaults", {})
+    bad = set(defaults) - run_fields
+    if bad:
+        raise UserError(f"{path}: unknown settings in [defaults]: {', '.join(sorted(bad))}")
+    scenes = []
+    for i, s in enumerate(data.get("scenes", [])):
+        if ("mesh" in s) == ("xml" in s):
+            raise UserError(f"{path}: scene #{i + 1} needs exactly one of 'mesh' or 'xml'")
+        kind = "mesh" if "mesh" in s else "xml"
+        name = s.get("name") or Path(s[kind]).stem
+        extra = set(s) - {"name", "mesh", "xml"} - set(SCENE_OPTIONS) - run_fields
+        if extra:
+            raise UserError(f"{path}: scene '{name}' has unknown settings: {', '.join(sorted(extra))}")
+        scenes.append(SuiteScene(name, (path.parent / s[kind]).resolve(), kind,
+                                 {k: v for k, v in s.items() if k in SCENE_OPTIONS},
+                                 {k: v for k, v in s.items() if k in run_fields}))
+    if not scenes:
+        raise UserError(f"{path}: the suite has no scenes")
+    names = [s.name for s in scenes]
+    if len(set(names)) != len(names):
+        raise UserError(f"{path}: scene names must be unique")
+    return Suite(data.get("name", path.stem), planners, scenes, defaults)
+
+
+@dataclass
+class Job:
+    scene: str
+    planner: str
+    seed: int
+    scene_xml: str
+    config: dict
+    out: str
+
+
+def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=None, scenes=None) -> list[Job]:
+    """Author mesh scenes (once) and list every run of the suite."""
+    from .run import RunConfig
+    from .scene import scene_from_mesh
+
+    if profile not in PROFILES:
+        raise UserError(f"unknown profile '{profile}'; use quick or full")
+    prof = dict(PROFILES[profile])
+    seeds = seeds or prof.pop("seeds")
+    prof.pop("seeds", None)
+    jobs = []
+    for sc in suite.scenes:
+        if scenes and sc.name not in scenes:
+            continue
+        if sc.kind == "mesh":
+            xml = out_dir / "scenes" / sc.name / f"{sc.name}.xml"
+            if not xml.is_file():
+                opts = dict(sc.scene_options)
+                if "color" in opts:
+                    opts["color"] = tuple(opts["color"])
+                scene_from_mesh(sc.path, xml, **opts)
+        else:
+            xml = sc.path
+        for planner in planners or suite.planners:
+            for seed in seeds:
+                # The profile sets the effort; the suite's defaults and each scene's own settings win.
+                settings = {"budget": 20, "eval_views": [5, 10, 15, 20], **prof, **suite.defaults,
+                            **sc.run_options}
+                cfg = RunConfig(scene=str(xml), planner=planner, seed=int(seed), **settings)
+                cfg.validate()
+                jobs.append(Job(sc.name, planner, int(seed), str(xml), asdict(cfg),
+                                str(out_dir / "runs" / sc.name / f"{planner}-seed{seed}")))
+    return jobs
+
+
+def run_job(job: Job, threads: int | None = None) -> dict:
+    """Run (or resume) one job; returns a short status. Runs inside a worker process."""
+    import drjit as dr
+
+    import mitsuba_active  # noqa: F401
+
+    from .env import SceneSource
+    from .run import Run, RunConfig
+
+    if threads:
+        dr.set_thread_count(threads)
+    cfg = RunConfig(**job.config)
+    rec_path = Path(job.out) / "run.json"
+    if rec_path.is_file() and json.loads(rec_path.read_text()).get("finished"):
+        return {"job": f"{job.scene}/{job.planner}/{job.seed}", "skipped": True}
+    t0 = time.perf_counter()
+    source = SceneSource.from_xml(job.scene_xml, cfg.rig, cfg.candidates, cfg.heldout, cfg.resolution, cfg.fov,
+                                  spp=cfg.spp)
+    Run(source, cfg, job.out, progress=False, log=lambda m: None).execute()
+    return {"job": f"{job.scene}/{job.planner}/{job.seed}", "skipped": False,
+            "seconds": round(time.perf_counter() - t0, 1)}
+
+
+def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, planners=None, scenes=None,
+              progress=True, log=print) -> dict:
+    """Run every job of a suite (resuming finished ones) and write the report; returns the summary."""
+    import multiprocessing as mp
+    import os
+
+    from tqdm import tqdm
+
+    suite = load_suite(suite_path)
+    out_dir = Path(out_dir)
+    if workers < 1:
+        raise UserError(f"--workers must be at least 1, got {workers}")
+    jobs = plan_jobs(suite, out_dir, profile, seeds, planners, scenes)
+    threads = max(1, (os.cpu_count() or 1) // workers)
+    bar = tqdm(total=len(jobs), desc=f"suite {suite.name}", unit="run", disable=not progress)
+    if workers == 1:
+        for job in jobs:
+            bar.set_postfix_str(f"{job.scene}/{job.planner}/{job.seed}")
+            run_job(job)
+            bar.update()
+    else:
+        # Dr.Jit must not be forked once initialised: workers are fresh processes.
+        with mp.get_context("spawn").Pool(workers) as pool:
+            for status in pool.imap_unordered(_run_job_star, [(j, threads) for j in jobs]):
+                bar.set_postfix_str(status["job"])
+                bar.update()
+    bar.close()
+    return write_report(suite, jobs, out_dir / "report", profile)
+
+
+def _run_job_star(args):
+    return run_job(*args)
+
+
+# ---------------------------------------------------------------------------
+# Reports
+# ---------------------------------------------------------------------------
+
+def collect(jobs: list[Job]) -> dict:
+    """scene -> planner -> list of finished run records (one per seed)."""
+    out: dict = {}
+    for job in jobs:
+        path = Path(job.out) / "run.json"
+        if not path.is_file():
+            continue
+        rec = json.loads(path.read_text())
+        if rec.get("finished"):
+            out.setdefault(job.scene, {}).setdefault(job.planner, []).append(rec)
+    return out
+
+
+def metric_at(rec: dict, metric: str, views: int):
+    for m in rec["metrics"]:
+        if m["views"] == views and m.get(metric) is not None:
+            return m[metric]
+    return None
+
+
+def summarize(values) -> dict:
+    vals = [v for v in values if v is not None and np.isfinite(v)]
+    return {"iqm": iqm(vals) if vals else None, "se": standard_error(vals) if vals else None, "n": len(vals)}
+
+
+def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str) -> dict:
+    """Tables (Markdown, CSV, JSON) in the layout of the seed's Tables I and III, and plots."""
+    from .report import plot_metrics
+
+    data = collect(jobs)
+    scenes = [s.name for s in suite.scenes if s.name in data]
+    planners = [p for p in dict.fromkeys(j.planner for j in jobs)]
+    summary = {"suite": suite.name, "profile": profile, "table_views": list(TABLE_VIEWS), "cells": []}
+    for scene in scenes:
+        for planner in planners:
+            recs = data[scene].get(planner, [])
+            cell = {"scene": scene, "planner": planner, "seeds": len(recs),
+                    "wall_seconds": summarize([r.get("wall_seconds") for r in recs])}
+            for metric in ("psnr", "distance_error"):
+                for v in TABLE_VIEWS:
+                    cell[f"{metric}@{v}"] = summarize([metric_at(r, metric, v) for r in recs])
+            summary["cells"].append(cell)
+    report_dir.mkdir(parents=True, exist_ok=True)
+    with atomic_write(report_dir / "results.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=1))
+    for metric, title in (("psnr", "Photometric held-out PSNR (dB)"), ("distance_error", "Distance error (%)")):
+        md, csv_rows = _table(summary, scenes, planners, metric, title)
+        with atomic_write(report_dir / f"table_{metric}.md") as tmp:
+            tmp.write_text(md)
+        with atomic_write(report_dir / f"table_{metric}.csv") as tmp:
+            tmp.write_text("\n".join(",".join(map(str, r)) for r in csv_rows) + "\n")
+    # Plots: per scene, IQM over seeds with a +-SE band; and one summary over scenes.
+    overall: dict = {}
+    for scene in scenes:
+        series, bands = {}, {}
+        for planner, recs in data[scene].items():
+            counts = sorted({m["views"] for r in recs for m in r["metrics"]})
+            rows, lo, hi = [], {}, {}
+            for c in counts:
+                row = {"views": c}
+                for metric in ("psnr", "ssim", "distance_error"):
+                    s = summarize([metric_at(r, metric, c) for r in recs])
+                    row[metric] = s["iqm"]
+                    if s["iqm"] is not None:
+                        lo.setdefault(metric, []).append(s["iqm"] - s["se"])
+                        hi.setdefault(metric, []).append(s["iqm"] + s["se"])
+                rows.append(row)
+            series[planner] = rows
+            bands[planner] = {m: (lo[m], hi[m]) for m in lo if len(lo[m]) == len(counts)}
+            for row in rows:
+                if row["psnr"] is not None:
+                    overall.setdefault(planner, {}).setdefault(row["views"], []).append(row["psnr"])
+        folder = report_dir / "plots" / scene
+        folder.mkdir(parents=True, exist_ok=True)
+        plot_metrics(series, folder, title=scene, bands=bands)
+    mean_series = {p: [{"views": v, "psnr": float(np.mean(x))} for v, x in sorted(d.items())]
+                   for p, d in overall.items()}
+    if mean_series:
+        (report_dir / "plots" / "summary").mkdir(parents=True, exist_ok=True)
+        plot_metrics(mean_series, report_dir / "plots" / "summary", title=f"{suite.name}: mean over scenes")
+    return summary
+
+
+def _fmt(s: dict) -> str:
+    return "n/a" if s["iqm"] is None else f"{s['iqm']:.2f} ± {s['se']:.2f}"
+
+
+def _table(summary: dict, scenes, planners, metric: str, title: str):
+    cells = {(c["scene"], c["planner"]): c for c in summary["cells"]}
+    head = ["planner"] + [f"{s} @{v}" for s in scenes for v in TABLE_VIEWS] + ["wall time (s)"]
+    lines = [f"## {title}", "", "Interquartile mean ± standard error over seeds, at "
+             + " and ".join(map(str, TABLE_VIEWS)) + " views captured.", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    csv_rows = [["planner", "scene", "views", "iqm", "se", "n"]]
+    for p in planners:
+        row, walls = [p], []
+        for s in scenes:
+            c = cells.get((s, p))
+            for v in TABLE_VIEWS:
+                st = c[f"{metric}@{v}"] if c else {"iqm": None, "se": None, "n": 0}
+                row.append(_fmt(st))
+                csv_rows.append([p, s, v, st["iqm"], st["se"], st["n"]])
+            if c and c["wall_seconds"]["iqm"] is not None:
+                walls.append(c["wall_seconds"]["iqm"])
+        row.append(f"{np.mean(walls):.0f}" if walls else "n/a")
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n", csv_rows

@@ -1,0 +1,114 @@
+import json
+
+import numpy as np
+import pytest
+
+from mitsuba_active.bench import load_suite, run_suite
+from mitsuba_active.errors import UserError
+from mitsuba_active.metrics import distance_error, iqm, psnr, ssim, standard_error
+
+
+def test_iqm_and_standard_error_by_hand():
+    assert iqm([4, 1, 3, 2]) == pytest.approx(2.5)  # middle two of 1..4
+    assert iqm(range(1, 9)) == pytest.approx(4.5)  # 3, 4, 5, 6
+    assert iqm([1, 2, 3, 4, 100]) == pytest.approx((0.75 * 2 + 3 + 0.75 * 4) / 2.5)  # fractional edges
+    assert iqm([7.0]) == 7.0
+    assert standard_error([1, 2, 3, 4]) == pytest.approx(np.sqrt(5 / 3) / 2)
+    assert standard_error([3.0]) == 0.0
+
+
+def test_image_metrics():
+    a = np.full((16, 16, 3), 0.5)
+    assert psnr(a, a + 0.1) == pytest.approx(20.0)
+    assert ssim(a, a) == pytest.approx(1.0)
+    assert ssim(a, np.random.default_rng(0).random(a.shape)) < 0.2
+    d, m = np.full((4, 4), 2.0), np.zeros((4, 4), bool)
+    m[0] = True
+    assert distance_error(d * 1.1, d, m) == pytest.approx(10.0)
+
+
+TINY_SUITE = """
+name = "tiny"
+planners = ["even", "rfe"]
+[defaults]
+candidates = 8
+heldout = 2
+resolution = 16
+spp = 2
+budget = 4
+initial_views = 2
+eval_views = [2, 4]
+initial_steps = 10
+steps_per_view = 5
+eval_steps = 20
+rays_per_candidate = 16
+field = { batch_rays = 256, n_samples = 16, render_batch = 1024 }
+[[scenes]]
+name = "ball"
+mesh = "ball.ply"
+[[scenes]]
+name = "simple"
+xml = "{simple}"
+"""
+
+
+@pytest.fixture()
+def tiny_suite(tmp_path, shared_data):
+    import trimesh
+
+    trimesh.creation.icosphere(subdivisions=3).export(tmp_path / "ball.ply")
+    path = tmp_path / "tiny.toml"
+    path.write_text(TINY_SUITE.replace("{simple}", str(shared_data / "mitsuba/simple/scene.xml")))
+    return path
+
+
+def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
+    from mitsuba_active import bench
+
+    # Tables report 10 and 20 views in real suites; this one stops at 4.
+    monkeypatch.setattr(bench, "TABLE_VIEWS", (2, 4))
+    out = tmp_path / "out"
+    summary = run_suite(tiny_suite, out, "quick", workers=1, progress=False)
+    assert len(summary["cells"]) == 4 and all(c["seeds"] == 1 for c in summary["cells"])
+    report = out / "report"
+    table = (report / "table_psnr.md").read_text()
+    assert "| rfe |" in table and "ball @4" in table and "±" in table
+    assert (report / "table_distance_error.csv").is_file() and (report / "results.json").is_file()
+    assert (report / "plots" / "ball" / "psnr.png").is_file() and (report / "plots" / "summary" / "psnr.png").is_file()
+    # Resume: finished runs are skipped, not redone.
+    stamps = {p: p.stat().st_mtime_ns for p in out.rglob("run.json")}
+    calls = []
+    from mitsuba_active.run import Run
+
+    monkeypatch.setattr(Run, "execute", lambda self: calls.append(1))
+    run_suite(tiny_suite, out, "quick", workers=1, progress=False)
+    assert calls == [] and stamps == {p: p.stat().st_mtime_ns for p in out.rglob("run.json")}
+    rec = json.loads(next(out.rglob("run.json")).read_text())
+    assert rec["finished"] and rec["wall_seconds"] > 0
+
+
+def test_bad_suites(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text("planners = ['oracle']\n[[scenes]]\nmesh='x.obj'\n")
+    with pytest.raises(UserError, match="unknown planner"):
+        load_suite(bad)
+    bad.write_text("[[scenes]]\nname='a'\n")
+    with pytest.raises(UserError, match="exactly one"):
+        load_suite(bad)
+    bad.write_text("[defaults]\nspeed = 3\n[[scenes]]\nmesh='x.obj'\n")
+    with pytest.raises(UserError, match="unknown settings"):
+        load_suite(bad)
+    bad.write_text("name = [")
+    with pytest.raises(UserError, match="malformed"):
+        load_suite(bad)
+    with pytest.raises(UserError, match="not found"):
+        load_suite(tmp_path / "none.toml")
+
+
+def test_bundled_suite_is_well_formed():
+    from tests.conftest import REPO
+
+    suite = load_suite(REPO / "benchmarks" / "suites" / "shared.toml")
+    assert len([s for s in suite.scenes if s.kind == "mesh"]) >= 6
+    assert {s.name for s in suite.scenes if s.kind == "xml"} == {"simple", "cbox"}
+    assert all(s.path.is_file() for s in suite.scenes)

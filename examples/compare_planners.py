@@ -28,7 +28,8 @@ def main():
                 initial_views=2, resolution=16 if tiny else 64, candidates=12 if tiny else 100,
                 heldout=3 if tiny else 20, spp=4 if tiny else 64, eval_views=[2, 4] if tiny else [5, 10, 15, 20],
                 initial_steps=20 if tiny else 300, steps_per_view=10 if tiny else 60,
-                eval_steps=30 if tiny else 1500, rays_per_candidate=32 if tiny else 256)
+                eval_steps=30 if tiny else 1500, rays_per_candidate=32 if tiny else 256,
+                field=dict(batch_rays=256, n_samples=16) if tiny else {})
     # One source for both planners: the same candidates, held-out views and cached ground truth.
     source = SceneSource.from_xml(args.scene, n_candidates=base["candidates"], n_heldout=base["heldout"],
                                   resolution=base["resolution"], spp=base["spp"])

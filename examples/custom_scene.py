@@ -65,7 +65,8 @@ def main():
                     resolution=16 if tiny else 64, candidates=12 if tiny else 60, heldout=3 if tiny else 15,
                     rig="hemisphere", spp=4 if tiny else 64, eval_views=[2, 4] if tiny else [5, 10, 15],
                     initial_steps=20 if tiny else 300, steps_per_view=10 if tiny else 60,
-                    eval_steps=30 if tiny else 1500, rays_per_candidate=32 if tiny else 256)
+                    eval_steps=30 if tiny else 1500, rays_per_candidate=32 if tiny else 256,
+                    field=dict(batch_rays=256, n_samples=16) if tiny else {})
     source = SceneSource.from_xml(xml, rig=cfg.rig, n_candidates=cfg.candidates, n_heldout=cfg.heldout,
                                   resolution=cfg.resolution, spp=cfg.spp)
     record = Run(source, cfg, out / "run", progress=not tiny).execute()

@@ -16,4 +16,13 @@ except UserError as exc:
     # One line with the fix, not a traceback from deep inside Dr.Jit.
     raise SystemExit(f"mitsuba-active: error: {exc}") from None
 
+try:  # Mitsuba plugins (the "radiance_field" integrator): cheap, and never fatal
+    from .plugins import register as _register_plugins
+
+    _register_plugins()
+except Exception as exc:  # pragma: no cover
+    import warnings
+
+    warnings.warn(f"mitsuba-active: Mitsuba plugins not registered ({exc})")
+
 __all__ = ["UserError", "set_variant", "__version__"]

@@ -1,0 +1,134 @@
+"""The ``radiance_field`` integrator: render a saved ensemble with ``mi.render``.
+
+.. code-block:: python
+
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "radiance_field", "filename": "field.npz"},
+        "sensor": {"type": "perspective", ...},
+    })
+    img = mi.render(scene)  # (H, W, 3 + 6): RGB, then the AOVs below
+
+Parameters:
+    filename: an ensemble written by ``Ensemble.save`` (``.npz``).
+    linear: bool, default True. The field stores sRGB colours in [0, 1];
+        with ``linear`` the mean colour is converted to linear RGB, so that
+        Mitsuba's film, EXR and PNG writers treat it as radiance. False
+        returns the field's sRGB values unchanged.
+
+Outputs, per sample (the film averages them over a pixel's samples):
+    RGB: mean colour over the ensemble members (linear or sRGB, see above);
+    ``variance.R/G/B``: population variance over members of the sRGB colour;
+    ``distance.Y``: mean over members of the expected distance (scene units)
+    from the sensor's optical centre, 0 where nothing is hit;
+    ``distance_var.Y``: its variance over members;
+    ``opacity.Y``: mean accumulated opacity in [0, 1].
+
+Mitsuba starts camera rays on the near-clip plane; the integrator moves each
+origin back along its ray onto the plane of the sensor's centre (for a
+perspective sensor: onto the optical centre itself), so ray parameters are
+distances from the optical centre, as in :func:`mitsuba_active.cameras.sensor_rays_dr`.
+The sensor comes from the ``render`` call; :meth:`sample` called on its own
+keeps the origins it is given.
+
+RGB variants with a JIT backend only (``llvm_ad_rgb``, ``cuda_ad_rgb``, ...).
+"""
+
+from __future__ import annotations
+
+NAME = "radiance_field"
+AOV_NAMES = ["variance.R", "variance.G", "variance.B", "distance.Y", "distance_var.Y", "opacity.Y"]
+
+_classes: dict = {}  # variant -> integrator class (each variant has its own mi.SamplingIntegrator)
+
+
+def supported(variant: str | None) -> bool:
+    """True for the variants the integrator runs on: JIT (llvm/cuda) RGB."""
+    return bool(variant) and variant.split("_")[0] in ("llvm", "cuda") and variant.endswith("_rgb")
+
+
+def integrator_class():
+    """The integrator class for the current Mitsuba variant (created on first use)."""
+    import mitsuba as mi
+
+    variant = mi.variant()
+    if not supported(variant):
+        raise RuntimeError(f"the {NAME} integrator needs an llvm_*_rgb or cuda_*_rgb variant, not {variant}")
+    if variant not in _classes:
+        _classes[variant] = _make_class(mi.SamplingIntegrator)
+    return _classes[variant]
+
+
+def create(props):
+    """Constructor handed to ``mi.register_integrator``."""
+    return integrator_class()(props)
+
+
+def _srgb_to_linear(x):
+    import drjit as dr
+
+    return dr.select(x <= 0.04045, x * (1.0 / 12.92), dr.power((x + 0.055) * (1.0 / 1.055), 2.4))
+
+
+def _make_class(base):
+    import drjit as dr
+    import mitsuba as mi
+
+    class RadianceFieldIntegrator(base):
+        """Renders a saved :class:`~mitsuba_active.field.Ensemble` (see the module docstring)."""
+
+        def __init__(self, props):
+            super().__init__(props)
+            from mitsuba_active.field import Ensemble
+
+            if "filename" not in props:
+                raise ValueError(f"{NAME}: the 'filename' parameter (a saved ensemble) is required")
+            self.filename = str(props["filename"])
+            self.linear = bool(props.get("linear", True))
+            self.ensemble = Ensemble.load(self.filename)
+            self._sensor = None
+
+        def render(self, scene, sensor=0, seed=0, spp=0, develop=True, evaluate=True):
+            # Remember the sensor: sample() needs its optical centre.
+            self._sensor = sensor if isinstance(sensor, mi.Sensor) else scene.sensors()[int(sensor)]
+            try:
+                return super().render(scene, self._sensor, seed, spp, develop, evaluate)
+            finally:
+                self._sensor = None
+
+        def _origins(self, ray):
+            """Ray origins moved back onto the plane through the sensor's centre, facing its axis."""
+            o, d = mi.Point3f(ray.o), dr.normalize(mi.Vector3f(ray.d))
+            if self._sensor is None:
+                return o, d
+            to_world = self._sensor.world_transform()
+            centre = to_world @ mi.Point3f(0.0, 0.0, 0.0)
+            axis = dr.normalize(to_world @ mi.Vector3f(0.0, 0.0, 1.0))
+            cos = dr.dot(d, axis)
+            back = dr.select(dr.abs(cos) > 1e-6, dr.dot(o - centre, axis) / cos, 0.0)
+            return dr.fma(d, -back, o), d
+
+        def sample(self, scene, sampler, ray, medium=None, active=True):
+            from mitsuba_active.field.render import render_members
+
+            o, d = self._origins(ray)
+            with dr.suspend_grad():
+                outs = render_members(self.ensemble.params(), o, d)
+            k = len(outs)
+            # Population statistics over members, as Ensemble.predict computes them.
+            rgb = sum(out["rgb"] for out in outs) / k
+            dist = sum(out["distance"] for out in outs) / k
+            opacity = sum(out["opacity"] for out in outs) / k
+            var = sum(dr.square(out["rgb"] - rgb) for out in outs) / k
+            dist_var = sum(dr.square(out["distance"] - dist) for out in outs) / k
+            colour = _srgb_to_linear(rgb) if self.linear else rgb
+            aovs = [var.x, var.y, var.z, dist, dist_var, opacity]
+            return mi.Spectrum(colour), mi.Bool(active), aovs
+
+        def aov_names(self):
+            return list(AOV_NAMES)
+
+        def to_string(self):
+            return f"RadianceFieldIntegrator[filename={self.filename!r}, linear={self.linear}]"
+
+    return RadianceFieldIntegrator

@@ -1,0 +1,337 @@
+"""Pre-captured datasets: layouts, pose and intrinsics conventions, images, errors."""
+
+import json
+import math
+import warnings
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+from mitsuba_active.cameras import camera_rays, fibonacci_sphere, look_at
+from mitsuba_active.datasets import (DatasetSource, estimate_bounds, mitsuba_to_opengl, open_source,
+                                     opengl_to_mitsuba)
+from mitsuba_active.env import ActiveViewEnv, SceneSource
+from mitsuba_active.errors import UserError
+
+
+@pytest.fixture(scope="module")
+def mic_dir(shared_data):
+    return shared_data / "datasets" / "nerf_synthetic_mic"
+
+
+@pytest.fixture(scope="module")
+def mic(mic_dir):
+    return DatasetSource.from_path(mic_dir, downscale=32)
+
+
+def blender_rays(matrix, fov_x, width, height):
+    """Unit ray directions (H*W, 3) through pixel centres, by hand in the Blender convention."""
+    f = 0.5 * width / math.tan(0.5 * fov_x)
+    j, i = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    d_cam = np.stack([(j - 0.5 * width) / f, -(i - 0.5 * height) / f, -np.ones_like(j)], -1).reshape(-1, 3)
+    d = d_cam @ np.asarray(matrix)[:3, :3].T
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def pose_gl(position, target):
+    """A Blender camera-to-world matrix at ``position`` looking at ``target``."""
+    return mitsuba_to_opengl(look_at(position, target))
+
+
+def write_dataset(root, n=10, size=(8, 8), form="ngp", rgba=None, missing=(), extra=None, frame_extra=None):
+    """A tiny dataset in ``root``: ``n`` cameras on a circle looking at the origin."""
+    w, h = size
+    (root / "images").mkdir(parents=True, exist_ok=True)
+    frames = []
+    for k in range(n):
+        a = 2 * math.pi * k / n
+        m = pose_gl([3 * math.cos(a), 0.5, 3 * math.sin(a)], [0, 0, 0])
+        name = f"images/f_{k:03d}"
+        if k not in missing:
+            img = rgba if rgba is not None else np.full((h, w, 3), 10 * k, np.uint8)
+            iio.imwrite(root / f"{name}.png", img)
+        frame = {"file_path": name + ".png" if form == "ngp" else "./" + name, "transform_matrix": m.tolist()}
+        frame.update((frame_extra or {}).get(k, {}))
+        frames.append(frame)
+    if form == "ngp":
+        meta = {"fl_x": 10.0, "fl_y": 10.0, "cx": w / 2, "cy": h / 2, "w": w, "h": h, "frames": frames}
+        meta.update(extra or {})
+        (root / "transforms.json").write_text(json.dumps(meta))
+        return root / "transforms.json"
+    train, test = frames[: n - 2], frames[n - 2:]
+    for split, fr in (("train", train), ("test", test)):
+        meta = {"camera_angle_x": 0.8, "frames": fr}
+        meta.update(extra or {})
+        (root / f"transforms_{split}.json").write_text(json.dumps(meta))
+    return root / "transforms_train.json"
+
+
+# -- poses and rays --------------------------------------------------------------
+
+def test_pose_conversion_round_trips(rng):
+    for _ in range(5):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        q *= np.sign(np.linalg.det(q))
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = q, rng.normal(size=3)
+        mi_pose = opengl_to_mitsuba(m)
+        assert np.allclose(mitsuba_to_opengl(mi_pose), m)
+        assert np.allclose(mi_pose[:3, 2], -m[:3, 2])  # Mitsuba looks along +Z, Blender along -Z
+        assert np.allclose(mi_pose[:3, 1], m[:3, 1])  # both have +Y up
+        assert np.allclose(mi_pose[:3, 3], m[:3, 3])
+
+
+def test_mirrored_or_scaled_rotation_is_refused():
+    with pytest.raises(UserError, match="not a rotation"):
+        opengl_to_mitsuba(np.diag([1.0, 1.0, -1.0, 1.0]))
+    with pytest.raises(UserError, match="not a rotation"):
+        opengl_to_mitsuba(np.diag([2.0, 2.0, 2.0, 1.0]))
+
+
+def test_mic_frames_reproject_like_the_dataset_camera(mic, mic_dir):
+    meta_test = json.loads((mic_dir / "transforms_test.json").read_text())
+    meta_train = json.loads((mic_dir / "transforms_train.json").read_text())
+    for cam, frame, meta in ((mic.heldout[0], meta_test["frames"][0], meta_test),
+                             (mic.candidates[7], meta_train["frames"][7], meta_train)):
+        assert (cam.width, cam.height) == (25, 25)
+        assert cam.fov == pytest.approx(math.degrees(meta["camera_angle_x"]))
+        o, d = camera_rays(cam)
+        m = np.array(frame["transform_matrix"])
+        assert np.allclose(o, m[:3, 3], atol=1e-5)
+        assert np.allclose(d, blender_rays(m, meta["camera_angle_x"], 25, 25), atol=1e-5)
+
+
+def test_mic_bounds_views_and_split(mic):
+    assert len(mic.candidates) == 100 and len(mic.heldout) == 25 and mic.name == "nerf_synthetic_mic"
+    assert np.all(mic.bbox_min > -1.8) and np.all(mic.bbox_min < -1.2)
+    assert np.all(mic.bbox_max < 1.8) and np.all(mic.bbox_max > 1.2)
+    v = mic.heldout_view(0)
+    assert v.rgb.shape == (25, 25, 3) and v.rgb.dtype == np.float32
+    assert 0.0 <= v.rgb.min() and v.rgb.max() <= 1.0
+    assert v.rgb[0, 0] == pytest.approx([1, 1, 1], abs=1e-4)  # background composited on white
+    assert v.rgb.min() < 0.5  # the microphone is there
+    # The 8-bit depth maps of nerf-synthetic are not metric: distances are unknown.
+    assert not v.mask.any() and not v.distance.any()
+    assert mic.heldout_view(0) is v  # cached
+
+
+def test_mic_downscale_is_an_area_average(mic_dir):
+    src = DatasetSource.from_path(mic_dir / "transforms_train.json", downscale=16, n_heldout=3)
+    assert len(src.heldout) == 3 and src.candidates[0].width == 50
+    raw = iio.imread(mic_dir / "train" / "r_0.png").astype(np.float64) / 255
+    rgb = raw[..., :3] * raw[..., 3:] + (1 - raw[..., 3:])
+    from mitsuba_active.imageio_utils import linear_to_srgb, srgb_to_linear
+
+    expect = linear_to_srgb(srgb_to_linear(rgb).reshape(50, 16, 50, 16, 3).mean(axis=(1, 3)))
+    assert np.allclose(src.candidate_view(0).rgb, expect, atol=1e-5)
+
+
+def test_env_over_a_dataset_passes_gymnasium_checker(mic):
+    check_env(ActiveViewEnv(mic, budget=3), skip_render_check=True)
+
+
+def test_render_only_looks_up_known_poses(mic):
+    assert mic.render(mic.heldout[2]) is mic.heldout_view(2)
+    pose = mic.candidates[0].to_world.copy()
+    pose[:3, 3] += 0.1
+    env = ActiveViewEnv(mic, budget=2)
+    env.reset(seed=0)
+    with pytest.raises(UserError, match="cannot render new poses"):
+        env.capture_pose(pose)
+
+
+# -- images ------------------------------------------------------------------------
+
+def test_rgba_is_composited_on_white_or_black(tmp_path):
+    img = np.zeros((4, 4, 4), np.uint8)
+    img[..., 0], img[..., 3] = 255, np.arange(16, dtype=np.uint8).reshape(4, 4) * 17
+    path = write_dataset(tmp_path, n=3, size=(4, 4), form="blender", rgba=img)
+    a = img[..., 3] / 255.0
+    white = DatasetSource.from_path(path).candidate_view(0).rgb
+    assert np.allclose(white[..., 0], 1.0, atol=1e-5)
+    assert np.allclose(white[..., 1], 1.0 - a, atol=1e-5) and np.allclose(white[..., 2], 1.0 - a, atol=1e-5)
+    black = DatasetSource.from_path(path, white_background=False).candidate_view(0).rgb
+    assert np.allclose(black[..., 0], a, atol=1e-5) and np.allclose(black[..., 1], 0.0, atol=1e-6)
+
+
+def test_missing_frames_are_skipped_with_one_warning(tmp_path):
+    path = write_dataset(tmp_path, n=10, form="blender", missing=(1, 4, 9))
+    with pytest.warns(UserWarning, match="skipped 3 of 10 frames") as record:
+        src = DatasetSource.from_path(path)
+    assert len(record) == 1
+    assert len(src.candidates) == 6 and len(src.heldout) == 1
+    assert src.heldout_view(0).rgb[0, 0, 0] == pytest.approx(80 / 255, abs=1e-5)
+
+
+# -- instant-ngp / nerfstudio form --------------------------------------------------
+
+def test_instant_ngp_form_holds_out_every_8th_frame(tmp_path):
+    write_dataset(tmp_path, n=17, size=(12, 8), extra={"camera_angle_x": 1.0})  # fl_x wins
+    src = DatasetSource.from_path(tmp_path)
+    assert len(src.heldout) == 3 and len(src.candidates) == 14
+    cam = src.candidates[0]
+    assert (cam.width, cam.height) == (12, 8)
+    assert cam.fov == pytest.approx(math.degrees(2 * math.atan(6 / 10)))
+    assert src.heldout_view(1).rgb[0, 0, 0] == pytest.approx(80 / 255, abs=1e-5)  # frame 8
+    check_env(ActiveViewEnv(src, budget=2), skip_render_check=True)
+
+
+def test_instant_ngp_off_centre_principal_point_is_cropped(tmp_path):
+    w, h = 16, 12
+    img = np.zeros((h, w, 3), np.uint8)
+    img[..., 0] = np.arange(w)[None, :] * 10  # red encodes the column, green the row
+    img[..., 1] = np.arange(h)[:, None] * 10
+    write_dataset(tmp_path, n=3, size=(w, h), rgba=img, extra={"cx": 10.0, "cy": 5.0})
+    src = DatasetSource.from_path(tmp_path / "transforms.json")
+    cam = src.heldout[0]  # frame 0: every 8th frame is held out
+    assert (cam.width, cam.height) == (12, 10)  # columns 4..15, rows 0..9
+    v = src.heldout_view(0).rgb
+    assert v[0, 0, 0] == pytest.approx(40 / 255, abs=1e-5) and v[-1, -1, 1] == pytest.approx(90 / 255, abs=1e-5)
+    # The cropped camera's rays are the original camera's rays through the same pixels.
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    m = np.array(meta["frames"][0]["transform_matrix"])
+    j, i = np.meshgrid(np.arange(4, 16) + 0.5, np.arange(0, 10) + 0.5)
+    d = np.stack([(j - 10.0) / 10, -(i - 5.0) / 10, -np.ones_like(j)], -1).reshape(-1, 3) @ m[:3, :3].T
+    assert np.allclose(camera_rays(cam)[1], d / np.linalg.norm(d, axis=1, keepdims=True), atol=1e-5)
+
+
+def test_split_keys_and_nerfstudio_filenames(tmp_path):
+    split = {k: {"split": "test"} for k in (2, 5)}
+    write_dataset(tmp_path / "a", n=6, frame_extra=split)
+    src = DatasetSource.from_path(tmp_path / "a")
+    assert len(src.candidates) == 4 and len(src.heldout) == 2
+    write_dataset(tmp_path / "b", n=6, extra={"train_filenames": ["images/f_000.png", "images/f_001.png"],
+                                               "test_filenames": ["images/f_005.png"]})
+    src = DatasetSource.from_path(tmp_path / "b")
+    assert len(src.candidates) == 2 and len(src.heldout) == 1
+    assert src.heldout_view(0).rgb[0, 0, 0] == pytest.approx(50 / 255, abs=1e-5)
+
+
+def test_metric_depth_becomes_distance_along_rays(tmp_path):
+    w = h = 8
+    z = np.full((h, w), 2000, np.uint16)  # 2 m in millimetres
+    z[:, :2] = 0  # unknown
+    (tmp_path / "depth").mkdir()
+    iio.imwrite(tmp_path / "depth" / "d.png", z)
+    write_dataset(tmp_path, n=3, size=(w, h), frame_extra={0: {"depth_file_path": "depth/d.png"}},
+                  extra={"depth_unit_scale_factor": 1e-3})
+    src = DatasetSource.from_path(tmp_path)
+    v = src.heldout_view(0)  # frame 0
+    assert not v.mask[:, :2].any() and v.mask[:, 2:].all()
+    _, d = camera_rays(src.heldout[0])
+    cos = d @ src.heldout[0].forward
+    assert np.allclose(v.distance[:, 2:], (2.0 / cos).reshape(h, w)[:, 2:], rtol=1e-5)
+    assert not src.candidate_view(0).mask.any()  # no depth file: unknown
+
+
+def test_aabb_key_sets_bounds(tmp_path):
+    write_dataset(tmp_path, n=4, extra={"aabb": [[-1, -2, -3], [1, 2, 3]]})
+    src = DatasetSource.from_path(tmp_path)
+    assert np.allclose(src.bbox_min, [-1, -2, -3]) and np.allclose(src.bbox_max, [1, 2, 3])
+
+
+def test_estimated_bounds_centre_on_the_object():
+    cams = fibonacci_sphere(30, center=[1.0, -2.0, 0.5], radius=4.0, fov=40.0)
+    lo, hi = estimate_bounds(cams)
+    assert np.allclose(0.5 * (lo + hi), [1.0, -2.0, 0.5], atol=1e-6)
+    assert np.allclose(0.5 * (hi - lo), 1.1 * 4.0 * math.sin(math.radians(20.0)), rtol=1e-6)
+
+
+# -- errors -------------------------------------------------------------------------
+
+def _bad_json(root):
+    write_dataset(root, n=3)
+    (root / "transforms.json").write_text("{ not json")
+
+
+def _no_frames(root):
+    write_dataset(root, n=3, extra={"frames": []})
+
+
+def _no_focal(root):
+    write_dataset(root, n=3, form="blender")
+    for split in ("train", "test"):
+        p = root / f"transforms_{split}.json"
+        meta = json.loads(p.read_text())
+        del meta["camera_angle_x"]
+        p.write_text(json.dumps(meta))
+
+
+def _all_missing(root):
+    write_dataset(root, n=3, missing=(0, 1, 2))
+
+
+def _bad_matrix(root):
+    write_dataset(root, n=3, frame_extra={1: {"transform_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}})
+
+
+def _distorted(root):
+    write_dataset(root, n=3, extra={"k1": 0.1})
+
+
+def _non_square(root):
+    write_dataset(root, n=3, extra={"fl_y": 12.0})
+
+
+def _bad_aabb(root):
+    write_dataset(root, n=3, extra={"aabb": [1, 2, 3]})
+
+
+@pytest.mark.parametrize("make,message", [
+    (_bad_json, "not valid JSON"), (_no_frames, "no frames"), (_no_focal, "camera_angle_x or fl_x"),
+    (_all_missing, "none of the dataset's image files"), (_bad_matrix, "must be 4x4"),
+    (_distorted, "distortion"), (_non_square, "non-square"), (_bad_aabb, "aabb"),
+])
+def test_malformed_datasets_fail_with_one_line(tmp_path, make, message):
+    make(tmp_path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(UserError, match=message) as err:
+            DatasetSource.from_path(tmp_path)
+    assert "\n" not in str(err.value)
+
+
+# -- open_source ----------------------------------------------------------------------
+
+def test_open_source_dispatches_on_the_path(tmp_path, mic_dir, sphere_xml):
+    src = open_source(mic_dir, n_candidates=10, n_heldout=4, resolution=25)
+    assert isinstance(src, DatasetSource)
+    assert len(src.candidates) == 10 and len(src.heldout) == 4 and src.candidates[0].width == 25
+    scene = open_source(sphere_xml, n_candidates=4, n_heldout=2, resolution=8, spp=1, cache_dir=False)
+    assert isinstance(scene, SceneSource) and len(scene.candidates) == 4
+    with pytest.raises(UserError, match="no such"):
+        open_source(tmp_path / "nope.xml")
+    (tmp_path / "scene.obj").write_text("")
+    with pytest.raises(UserError, match="expected a Mitsuba scene"):
+        open_source(tmp_path / "scene.obj")
+    with pytest.raises(UserError, match="neither"):
+        open_source(tmp_path)
+    with pytest.raises(UserError, match="rig"):
+        open_source(mic_dir, rig="sphere")
+
+
+def test_lone_train_file_holds_out_every_8th_frame(tmp_path):
+    path = write_dataset(tmp_path, n=12, form="blender")
+    (tmp_path / "transforms_test.json").unlink()
+    src = DatasetSource.from_path(path)
+    assert len(src.candidates) == 8 and len(src.heldout) == 2  # 10 train frames: 0 and 8 held out
+
+
+def test_image_size_that_contradicts_the_json_is_refused(tmp_path):
+    write_dataset(tmp_path, n=3, size=(8, 8), extra={"w": 10, "h": 8, "cx": 5.0})
+    src = DatasetSource.from_path(tmp_path)
+    with pytest.raises(UserError, match="the dataset says 10x8"):
+        src.candidate_view(0)
+
+
+def test_distance_maps_of_our_own_export_are_read_as_distances(tmp_path):
+    from mitsuba_active.imageio_utils import write_exr
+
+    dist = np.full((8, 8), 2.5, np.float32)
+    dist[0] = 0.0  # nothing hit
+    write_exr(tmp_path / "distance" / "d.exr", {"RGB": np.zeros((8, 8, 3), np.float32), "Z": dist})
+    write_dataset(tmp_path, n=3, frame_extra={0: {"distance_file_path": "distance/d.exr"}})
+    v = DatasetSource.from_path(tmp_path).heldout_view(0)
+    assert np.array_equal(v.distance, dist) and np.array_equal(v.mask, dist > 0)

@@ -1,0 +1,90 @@
+"""The ``radiance_field`` Mitsuba integrator against the library's own renderer."""
+
+import numpy as np
+import pytest
+
+import mitsuba_active  # noqa: F401  (variant first)
+import mitsuba as mi
+
+from mitsuba_active.cameras import Camera, camera_rays, fibonacci_sphere, look_at
+from mitsuba_active.field import Ensemble, FieldConfig
+from mitsuba_active.imageio_utils import srgb_to_linear
+from mitsuba_active.plugins import register
+from mitsuba_active.plugins.radiance_field import AOV_NAMES, NAME
+
+W, H = 16, 12
+
+
+@pytest.fixture(scope="module")
+def field_path(tmp_path_factory):
+    """A 3-member ensemble trained for a few steps on rays of a textured sphere."""
+    assert register()
+    cfg = FieldConfig(n_levels=2, base_resolution=8, log2_table_size=12, n_samples=32,
+                      batch_rays=512, render_batch=1024)
+    ens = Ensemble([-0.7] * 3, [0.7] * 3, n_members=3, config=cfg, seed=1)
+    o, d = map(np.concatenate, zip(*(camera_rays(c) for c in fibonacci_sphere(4, [0, 0, 0], 3.0, width=16))))
+    hit = np.abs(np.cross(o, d)).sum(1) < 0.5  # roughly the rays that pass the centre
+    rgb = np.where(hit[:, None], [0.8, 0.3, 0.1], 1.0)
+    ens.set_rays(o, d, rgb, np.where(hit, 2.5, 0.0), hit)
+    ens.train(5)
+    path = tmp_path_factory.mktemp("plugin") / "field.npz"
+    ens.save(path)
+    return path
+
+
+def pixel_centre_sensor(cam: Camera, spp=1, near=0.5):
+    """A perspective sensor sampling pixel centres only (stratified, no jitter, box filter)."""
+    return mi.load_dict({
+        "type": "perspective", "fov": cam.fov, "fov_axis": "x", "near_clip": near,
+        "to_world": mi.ScalarTransform4f(cam.to_world.tolist()),
+        "film": {"type": "hdrfilm", "width": cam.width, "height": cam.height,
+                 "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+        "sampler": {"type": "stratified", "sample_count": spp, "jitter": False},
+    })
+
+
+def render(path, sensor, **params):
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": NAME, "filename": str(path), **params},
+                          "sensor": sensor})
+    return scene, np.array(mi.render(scene), dtype=np.float32)
+
+
+@pytest.fixture(scope="module")
+def camera():
+    return Camera(look_at([0.4, 0.6, -2.8], [0.0, 0.1, 0.0]), 45.0, W, H)
+
+
+def test_plugin_matches_the_library_renderer(field_path, camera):
+    scene, img = render(field_path, pixel_centre_sensor(camera), linear=False)
+    assert img.shape == (H, W, 3 + len(AOV_NAMES))
+    assert scene.integrator().aov_names() == AOV_NAMES
+    p = Ensemble.load(field_path).predict(*camera_rays(camera))
+    flat = img.reshape(-1, img.shape[-1])
+    assert np.allclose(flat[:, :3], p["rgb_mean"], atol=1e-5)
+    assert np.allclose(flat[:, 3:6], p["rgb_var"], atol=1e-6)
+    # Distances are from the optical centre although Mitsuba starts rays at the near plane (0.5).
+    assert np.allclose(flat[:, 6], p["distance_mean"], atol=1e-4)
+    assert np.allclose(flat[:, 7], p["distance_var"], atol=1e-5)
+    assert np.allclose(flat[:, 8], p["opacity"], atol=1e-5)
+    # The field is not trivial: members disagree and something is in view.
+    assert p["rgb_var"].max() > 1e-6 and p["opacity"].max() > 0.05 and p["distance_mean"].max() > 1.0
+
+
+def test_default_output_is_linear_rgb(field_path, camera):
+    _, img = render(field_path, pixel_centre_sensor(camera))
+    p = Ensemble.load(field_path).predict(*camera_rays(camera))
+    assert np.allclose(img[..., :3].reshape(-1, 3), srgb_to_linear(p["rgb_mean"]), atol=1e-5)
+
+
+def test_any_sensor_through_plain_mi_render(field_path, camera):
+    # A sensor passed to mi.render (not the scene's), several random samples per pixel.
+    scene, _ = render(field_path, pixel_centre_sensor(camera))
+    img = np.array(mi.render(scene, sensor=camera.with_resolution(8, 6).sensor(spp=4), spp=4))
+    assert img.shape == (6, 8, 9) and np.all(np.isfinite(img))
+    assert img[..., :3].min() >= 0 and img[..., :3].max() <= 1 and img[..., 8].max() <= 1 + 1e-6
+
+
+def test_missing_filename_is_refused():
+    assert register()
+    with pytest.raises(Exception, match="filename"):
+        mi.load_dict({"type": NAME})

@@ -1,0 +1,151 @@
+"""Training throughput of the radiance-field ensemble (ray-samples per second).
+
+A ray-sample is one of the ``n_samples`` stratified samples of one training
+ray of one member; every sample is evaluated (no empty-space skipping), so
+``samples/s = K * batch_rays * n_samples / step_time``. A step is a full
+training step: batch sampling, forward, backward and the Adam update, timed
+with the loss read back (which synchronises the device).
+
+Usage::
+
+    PYTHONPATH=. python benchmarks/train_throughput.py [--steps 20] [--repeats 3]
+        [--memory-steps 2000] [--out benchmarks/results/train_throughput.json]
+
+``--memory-steps N`` additionally trains K=1 for N steps and records the
+resident set size (RSS) every 100 steps; the drift is (last - first)/first
+after a 100-step warm-up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import mitsuba_active  # noqa: E402,F401  (variant + LLVM first)
+import numpy as np  # noqa: E402
+
+from mitsuba_active.field import Ensemble, FieldConfig  # noqa: E402
+
+
+def synthetic_rays(n_views=20, width=64, height=64, radius=3.0, sphere=0.6, seed=0):
+    """Rays of cameras on a sphere looking at a textured analytic sphere."""
+    rng = np.random.default_rng(seed)
+    O, D = [], []
+    for i in range(n_views):
+        v = rng.normal(size=3)
+        cam = radius * v / np.linalg.norm(v)
+        f = -cam / np.linalg.norm(cam)
+        r = np.cross(f, [0.0, 1.0, 0.0])
+        r /= np.linalg.norm(r)
+        u = np.cross(r, f)
+        t = np.tan(np.radians(20.0))
+        ys, xs = np.meshgrid((np.arange(height) + 0.5) / height * 2 - 1,
+                             (np.arange(width) + 0.5) / width * 2 - 1, indexing="ij")
+        d = f + xs.reshape(-1, 1) * t * r - ys.reshape(-1, 1) * t * u
+        D.append(d / np.linalg.norm(d, axis=1, keepdims=True))
+        O.append(np.repeat(cam[None], width * height, 0))
+    o = np.concatenate(O).astype(np.float32)
+    d = np.concatenate(D).astype(np.float32)
+    b = np.sum(o * d, 1)
+    disc = b * b - (np.sum(o * o, 1) - sphere ** 2)
+    hit = disc > 0
+    dist = np.where(hit, -b - np.sqrt(np.maximum(disc, 0.0)), 0.0)
+    p = o + dist[:, None] * d
+    rgb = np.where(hit[:, None], 0.5 + 0.4 * np.sin(5 * p + np.arange(3)), 1.0)
+    return o, d, rgb.astype(np.float32), dist.astype(np.float32), hit
+
+
+def rss_mib() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def time_steps(ks, rays, cfg, steps, repeats, warmup):
+    """Per-step wall times for each K; the K's steps are interleaved
+    (K=1, K=4, K=1, ...) so that load from other processes hits all alike."""
+    ens = {}
+    for k in ks:
+        ens[k] = Ensemble([-0.7] * 3, [0.7] * 3, n_members=k, config=cfg, seed=0)
+        ens[k].set_rays(*rays)
+        ens[k].train(warmup)  # compiles and caches every kernel
+    times = {k: [] for k in ks}
+    for _ in range(repeats * steps):
+        for k in ks:
+            t0 = time.perf_counter()
+            ens[k].train(1)
+            times[k].append(time.perf_counter() - t0)
+    return times
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=20, help="timed steps per repeat")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--warmup", type=int, default=5)
+    ap.add_argument("--members", type=int, nargs="+", default=[1, 4])
+    ap.add_argument("--memory-steps", type=int, default=0,
+                    help="also track RSS over this many K=1 steps (e.g. 2000)")
+    ap.add_argument("--out", default="benchmarks/results/train_throughput.json")
+    args = ap.parse_args(argv)
+
+    cfg = FieldConfig()  # 4096 rays x 64 samples by default
+    rays = synthetic_rays()
+    result = dict(batch_rays=cfg.batch_rays, n_samples=cfg.n_samples,
+                  config=cfg.to_dict(), machine=platform.processor() or platform.machine(),
+                  cpu_count=os.cpu_count(), variant=__import__("mitsuba").variant(),
+                  sample_counting="K * batch_rays * n_samples per step: every stratified "
+                                  "sample of every ray and member is evaluated "
+                                  "(no empty-space skipping)",
+                  members={})
+    all_times = time_steps(args.members, rays, cfg, args.steps, args.repeats, args.warmup)
+    for k in args.members:
+        times = all_times[k]
+        med = statistics.median(times)
+        sps = k * cfg.batch_rays * cfg.n_samples / med
+        result["members"][str(k)] = dict(step_ms_median=med * 1e3,
+                                         step_ms_min=min(times) * 1e3,
+                                         ray_samples_per_s=sps,
+                                         ray_samples_per_s_best=k * cfg.batch_rays * cfg.n_samples / min(times),
+                                         timed_steps=len(times))
+        print(f"K={k}: step {med * 1e3:.1f} ms (median of {len(times)}, min {min(times) * 1e3:.1f}), "
+              f"{sps / 1e6:.2f} M ray-samples/s")
+    if "1" in result["members"] and "4" in result["members"]:
+        ratio = result["members"]["4"]["step_ms_median"] / result["members"]["1"]["step_ms_median"]
+        result["k4_over_k1_step_time"] = ratio
+        print(f"K=4 / K=1 step time: {ratio:.2f}")
+
+    if args.memory_steps > 0:
+        ens = Ensemble([-0.7] * 3, [0.7] * 3, n_members=1, config=cfg, seed=0)
+        ens.set_rays(*rays)
+        ens.train(100)
+        trace = [(0, rss_mib())]
+        done = 0
+        while done < args.memory_steps:
+            n = min(100, args.memory_steps - done)
+            ens.train(n)
+            done += n
+            trace.append((done, rss_mib()))
+        first, last = trace[0][1], trace[-1][1]
+        drift = (last - first) / first
+        result["memory"] = dict(steps=args.memory_steps, rss_mib_first=first,
+                                rss_mib_last=last, rss_mib_max=max(r for _, r in trace),
+                                drift=drift, trace=trace)
+        print(f"RSS over {args.memory_steps} steps: {first:.1f} -> {last:.1f} MiB "
+              f"(drift {100 * drift:+.1f}%, max {result['memory']['rss_mib_max']:.1f})")
+
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2))
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,19 @@
+"""Radiance-field ensembles on Dr.Jit: multi-resolution grids, volume
+rendering of flat ray batches, fused K-member training, Fisher diagonals.
+
+Public API::
+
+    from mitsuba_active.field import FieldConfig, Ensemble
+
+Lower level (Dr.Jit arrays, no numpy): :mod:`mitsuba_active.field.render`
+(``render_rays_dr``, ``render_flat``, ``composite``, ``sample_along_rays``).
+See docs/field.md.
+"""
+
+import mitsuba_active  # noqa: F401  (selects the Mitsuba variant and LLVM first)
+
+from .config import FieldConfig
+from .ensemble import Ensemble
+from .render import FieldParams, render_rays_dr
+
+__all__ = ["FieldConfig", "Ensemble", "FieldParams", "render_rays_dr"]

@@ -1,0 +1,107 @@
+"""Options of the radiance field (:class:`FieldConfig`).
+
+Every option is a plain number so that the config round-trips through JSON
+(it is stored inside saved ensembles, see :mod:`mitsuba_active.field.io`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+
+@dataclass
+class FieldConfig:
+    """Model, renderer and optimiser options of an :class:`Ensemble`.
+
+    Grid
+    ----
+    n_levels:
+        Number of grid levels. Level ``l`` has ``base_resolution *
+        per_level_scale**l`` cells per axis of the padded bounding box.
+    base_resolution:
+        Cells per axis of the coarsest level.
+    per_level_scale:
+        Resolution factor between consecutive levels.
+    log2_table_size:
+        log2 of the maximum number of vertices stored per level. Levels whose
+        ``(res+1)**3`` vertices fit are stored densely (no collisions); finer
+        levels are hashed into a table of this size (Instant-NGP style).
+    n_features:
+        Features per vertex; fixed at 4: (density logit, red, green, blue
+        logits). The levels' trilinearly interpolated features are summed,
+        so the "decoder" is just ``exp`` for density and a sigmoid for colour
+        (no MLP: a tensor MLP costs more than the whole grid on a CPU).
+    init_scale:
+        Features start uniform in ``[-init_scale, init_scale]``. A visible
+        scale matters: it is what makes ensemble members disagree where no
+        training ray constrains them.
+    density_bias:
+        Added to the density logit. Density in 1/scene-unit is
+        ``exp(logit + density_bias) / diag`` where ``diag`` is the padded
+        bounding-box diagonal, so an untrained field has an optical depth of
+        about ``exp(density_bias)`` along a diagonal.
+    bbox_padding:
+        The bounding box is grown by this fraction of its size on every side
+        before the grid is laid out and rays are clipped.
+
+    Rendering
+    ---------
+    n_samples:
+        Stratified samples per ray between the entry and exit of the padded
+        box (64 by default). Kernels are compiled for this block size.
+    render_batch:
+        Rays per member in one render kernel; inputs are padded to a whole
+        number of batches so compiled kernels are reused.
+
+    Training
+    --------
+    batch_rays:
+        Rays per member per step, sampled uniformly with replacement from all
+        training rays (4096 by default).
+    lr, beta_1, beta_2, epsilon:
+        Adam options (``drjit.opt.Adam``).
+    lr_background:
+        Learning rate of the per-member background colour logits.
+    distance_weight:
+        Weight of the distance loss (mean over the batch of ``hit *
+        (d_pred - d_true)**2 / diag**2``); 0 disables it.
+    """
+
+    n_levels: int = 4
+    base_resolution: int = 16
+    per_level_scale: float = 2.0
+    log2_table_size: int = 17
+    n_features: int = 4
+    init_scale: float = 0.1
+    density_bias: float = -1.0
+    bbox_padding: float = 0.05
+    n_samples: int = 64
+    render_batch: int = 4096
+    batch_rays: int = 4096
+    lr: float = 0.05
+    lr_background: float = 0.02
+    beta_1: float = 0.9
+    beta_2: float = 0.99
+    epsilon: float = 1e-8
+    distance_weight: float = 0.0
+
+    def __post_init__(self):
+        from ..errors import UserError
+
+        if self.n_features != 4:
+            raise UserError("FieldConfig.n_features must be 4 (density + RGB)")
+        for name in ("n_levels", "base_resolution", "log2_table_size", "n_samples",
+                     "render_batch", "batch_rays"):
+            if int(getattr(self, name)) < 1:
+                raise UserError(f"FieldConfig.{name} must be >= 1")
+        if not 1 <= self.log2_table_size <= 26:
+            raise UserError("FieldConfig.log2_table_size must be in [1, 26]")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "FieldConfig":
+        known = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in known})

@@ -1,0 +1,347 @@
+"""An ensemble of K radiance fields trained together in fused kernels.
+
+All members share one member-interleaved parameter table (``n_entries * K *
+4`` floats, see :mod:`mitsuba_active.field.grid`) and one background array
+(``K * 3``). A training step samples one batch of ``batch_rays`` rays, looks
+up all K members' features of every sample with one packet gather per grid
+corner, composites each member, and minimises the *sum* of the members' mean
+losses (so each member's gradient equals what it would get if trained
+alone); a single Adam update then advances every member.
+
+Randomness (ray batches, sample jitter) comes from integer hashes of the
+sample index and an opaque per-step key, so it is deterministic under the
+seed and the compiled kernels are reused from step to step.
+"""
+
+from __future__ import annotations
+
+import json
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from ..errors import UserError
+from .config import FieldConfig
+from .grid import GridLayout, init_grid
+from .render import FieldParams, hash_u32, render_flat, render_members, uniform_from_u32
+
+
+def _member_seeds(seed: int, n: int):
+    """Independent per-member seed sequences; member k does not depend on n."""
+    return [np.random.SeedSequence(int(seed), spawn_key=(k,)) for k in range(n)]
+
+
+class Ensemble:
+    """K radiance fields on one bounding box, trained on the same rays.
+
+    Args:
+        bbox_min, bbox_max: array-likes of 3 floats (scene units), the
+            region the fields live in (padded by ``config.bbox_padding``).
+        n_members: K.
+        config: :class:`FieldConfig` (defaults if None).
+        seed: base seed; member k is initialised from ``(seed, k)``.
+    """
+
+    def __init__(self, bbox_min, bbox_max, n_members: int = 4,
+                 config: FieldConfig | None = None, seed: int = 0):
+        self.config = config if config is not None else FieldConfig()
+        self.bbox_min = np.asarray(bbox_min, np.float64).reshape(3)
+        self.bbox_max = np.asarray(bbox_max, np.float64).reshape(3)
+        if not np.all(np.isfinite(self.bbox_min)) or not np.all(self.bbox_max > self.bbox_min):
+            raise UserError("Ensemble needs a finite bounding box with bbox_max > bbox_min")
+        if int(n_members) < 1:
+            raise UserError("Ensemble needs n_members >= 1")
+        self.n_members = int(n_members)
+        self.seed = int(seed)
+        self.layout = GridLayout.from_config(self.config)
+        pad = self.config.bbox_padding * (self.bbox_max - self.bbox_min)
+        self.box_min = tuple(float(v) for v in self.bbox_min - pad)
+        self.box_max = tuple(float(v) for v in self.bbox_max + pad)
+
+        seqs = _member_seeds(self.seed, self.n_members)
+        grid0 = init_grid(self.layout, self.config, seqs)
+        bg0 = np.stack([np.random.default_rng(s.spawn(1)[0]).uniform(-0.1, 0.1, 3)
+                        for s in seqs]).astype(np.float32)
+        self._make_optimizer(grid0, bg0)
+        self._step = 0
+        self._n_rays = 0
+        self._rays = None
+
+    # ------------------------------------------------------------------ state
+    def _make_optimizer(self, grid, bg, adam_state=None):
+        cfg = self.config
+        self._opt = dr.opt.Adam(lr=cfg.lr, beta_1=cfg.beta_1, beta_2=cfg.beta_2,
+                                epsilon=cfg.epsilon)
+        # (K, E, 4) member-major on the host -> (E, K, 4) interleaved table.
+        table = np.ascontiguousarray(np.transpose(np.asarray(grid, np.float32), (1, 0, 2)))
+        self._opt["grid"] = mi.Float(table.ravel())
+        self._opt["background"] = mi.Float(np.ascontiguousarray(bg, np.float32).ravel())
+        self._opt.set_learning_rate({"background": cfg.lr_background})
+        if adam_state is not None:
+            for key, (t, m, v) in adam_state.items():
+                value, promoted, lr, _ = self._opt.state[key]
+                self._opt.state[key] = (value, promoted, lr,
+                                        (mi.UInt32(int(t)), mi.Float(m), mi.Float(v), None))
+
+    def params(self) -> FieldParams:
+        """Current parameters as a :class:`FieldParams` (Dr.Jit arrays)."""
+        return FieldParams(grid=self._opt["grid"], background=self._opt["background"],
+                           layout=self.layout, box_min=self.box_min, box_max=self.box_max,
+                           n_samples=int(self.config.n_samples),
+                           density_bias=float(self.config.density_bias),
+                           n_members=self.n_members)
+
+    @property
+    def n_params(self) -> int:
+        """Trainable parameters of one member (grid floats + 3 background)."""
+        return self.layout.n_grid_params + 3
+
+    def member_params(self, member: int) -> np.ndarray:
+        """Flat float32 (P,) parameters of one member: grid then background."""
+        self._check_member(member)
+        grid = self.grid_numpy()[member].ravel()
+        bg = self._numpy("background").reshape(self.n_members, 3)[member]
+        return np.concatenate([grid, bg])
+
+    def grid_numpy(self) -> np.ndarray:
+        """Grid parameters as float32 (K, n_entries, 4), member-major."""
+        t = self._numpy("grid").reshape(self.layout.n_entries, self.n_members, 4)
+        return np.ascontiguousarray(np.transpose(t, (1, 0, 2)))
+
+    def _numpy(self, key) -> np.ndarray:
+        return np.array(dr.detach(self._opt[key]), dtype=np.float32)
+
+    def _check_member(self, member):
+        if not 0 <= int(member) < self.n_members:
+            raise UserError(f"member {member} out of range [0, {self.n_members})")
+
+    # ------------------------------------------------------------------- data
+    def set_rays(self, origins, directions, rgb, distance, hit):
+        """Replace the training rays (parameters and Adam state are kept).
+
+        Args:
+            origins: (M,3) ray origins (scene units), directions: (M,3) unit,
+            rgb: (M,3) target colour in [0,1], distance: (M,) metric distance
+            from the origin to the surface (ignored where ``~hit``),
+            hit: (M,) bool.
+        """
+        o = np.asarray(origins, np.float32).reshape(-1, 3)
+        d = np.asarray(directions, np.float32).reshape(-1, 3)
+        c = np.asarray(rgb, np.float32).reshape(-1, 3)
+        m = o.shape[0]
+        dist = np.asarray(distance, np.float32).reshape(-1)
+        h = np.asarray(hit, bool).reshape(-1)
+        if not (d.shape[0] == c.shape[0] == dist.shape[0] == h.shape[0] == m):
+            raise UserError("set_rays: origins, directions, rgb, distance and hit "
+                            "must describe the same number of rays")
+        if m == 0:
+            raise UserError("set_rays: no rays")
+        if m >= 2**31:
+            raise UserError("set_rays: too many rays (max 2^31)")
+        dist = np.where(h, np.nan_to_num(dist), 0.0).astype(np.float32)
+        self._rays = dict(o=mi.Point3f(o.T), d=mi.Vector3f(d.T), rgb=mi.Color3f(c.T),
+                          distance=mi.Float(dist), hit=mi.Bool(h))
+        dr.eval(self._rays)
+        self._n_rays = m
+
+    # --------------------------------------------------------------- training
+    def _batch(self, step: int):
+        """Ray indices and per-sample jitter of one step, made in-kernel.
+
+        All members see the same rays and samples in a step (that is what
+        lets them share one lookup kernel); they differ by initialisation.
+        """
+        cfg = self.config
+        N, S = int(cfg.batch_rays), int(cfg.n_samples)
+        # Opaque keys: the step and ray count change every call but must not
+        # be baked into the kernel as literals (that would recompile per step).
+        base = (self.seed * 0x9E3779B1 + step * 0x85EBCA77) & 0xFFFFFFFF
+        key = dr.opaque(mi.UInt32, base)
+        key2 = dr.opaque(mi.UInt32, base ^ 0x5BD1E995)
+        n_rays = dr.opaque(mi.UInt32, self._n_rays)
+        i = dr.arange(mi.UInt32, N)
+        # mul_hi maps a 32-bit hash uniformly onto [0, M) without modulo bias.
+        idx = dr.mul_hi(hash_u32(hash_u32(i) ^ key), n_rays)
+        jitter = uniform_from_u32(hash_u32(hash_u32(dr.arange(mi.UInt32, N * S)) ^ key2))
+        return idx, jitter
+
+    def train(self, steps: int, progress: bool = False) -> np.ndarray:
+        """Run ``steps`` Adam steps on all members; returns (steps,) float64
+        photometric MSE averaged over members (per step, before the update).
+
+        Raises:
+            UserError: no rays set, or the loss became NaN/inf.
+        """
+        if self._rays is None:
+            raise UserError("train: call set_rays() first")
+        cfg = self.config
+        K, N = self.n_members, int(cfg.batch_rays)
+        losses = np.zeros(int(steps), np.float64)
+        it = range(int(steps))
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(it, desc="field", unit="step")
+            it = bar
+        dw = float(cfg.distance_weight)
+        inv_diag2 = 1.0 / float(np.sum(np.subtract(self.box_max, self.box_min) ** 2))
+        for j in it:
+            idx, jitter = self._batch(self._step)
+            R = self._rays
+            o = dr.gather(mi.Point3f, R["o"], idx)
+            d = dr.gather(mi.Vector3f, R["d"], idx)
+            target = dr.gather(mi.Color3f, R["rgb"], idx)
+            outs = render_members(self.params(), o, d, jitter)
+            # Sum of the members' mean losses: each member gets the gradient
+            # it would get if trained alone.
+            sq = 0.0
+            for out in outs:
+                sq = sq + dr.squared_norm(out["rgb"] - target)
+            mse = dr.sum(sq) * (1.0 / (N * 3))
+            loss = mse
+            if dw > 0:
+                hit = dr.gather(mi.Bool, R["hit"], idx)
+                dt = dr.gather(mi.Float, R["distance"], idx)
+                dsq = 0.0
+                for out in outs:
+                    dsq = dsq + dr.square(dr.select(hit, out["distance"] - dt, 0.0))
+                loss = loss + dw * inv_diag2 / N * dr.sum(dsq)
+            dr.backward(loss)
+            self._opt.step()
+            self._step += 1
+            # One read-back per step (it synchronises): photometric MSE and
+            # total loss, the latter to catch a diverging distance term too.
+            both = np.array(dr.detach(mi.Vector2f(mse, loss))).ravel()
+            value = float(both[0]) / K
+            losses[j] = value
+            if not np.all(np.isfinite(both)):
+                if bar is not None:
+                    bar.close()
+                raise UserError(f"training diverged at step {self._step} (loss {value}); "
+                                "lower FieldConfig.lr")
+            if bar is not None and (j % 10 == 0):
+                bar.set_postfix(mse=f"{value:.4g}")
+        return losses
+
+    # -------------------------------------------------------------- inference
+    def _pad(self, origins, directions):
+        """Pad (N,3) rays to a whole number (>= 1) of ``render_batch`` rays so
+        every batch reuses one compiled kernel; returns (o, d, N, N_pad)."""
+        o = np.asarray(origins, np.float32).reshape(-1, 3)
+        d = np.asarray(directions, np.float32).reshape(-1, 3)
+        n = o.shape[0]
+        if d.shape[0] != n:
+            raise UserError("origins and directions differ in length")
+        B = int(self.config.render_batch)
+        n_pad = max(B, -(-n // B) * B)
+        op = np.zeros((n_pad, 3), np.float32)
+        dp = np.zeros((n_pad, 3), np.float32)
+        dp[:, 2] = 1.0
+        op[:n], dp[:n] = o, d
+        return op, dp, n, n_pad
+
+    def _render_all(self, origins, directions):
+        """Render every ray with every member; numpy (K, N, ...) outputs."""
+        op, dp, n, n_pad = self._pad(origins, directions)
+        K, B = self.n_members, int(self.config.render_batch)
+        rgb = np.empty((K, n_pad, 3), np.float32)
+        dist = np.empty((K, n_pad), np.float32)
+        opac = np.empty((K, n_pad), np.float32)
+        params = self.params()
+        with dr.suspend_grad():
+            for s in range(0, n_pad, B):
+                outs = render_members(params, mi.Point3f(op[s:s + B].T),
+                                      mi.Vector3f(dp[s:s + B].T))
+                dr.eval(outs)
+                for k, out in enumerate(outs):
+                    rgb[k, s:s + B] = np.array(out["rgb"]).T
+                    dist[k, s:s + B] = np.array(out["distance"])
+                    opac[k, s:s + B] = np.array(out["opacity"])
+        return rgb[:, :n], dist[:, :n], opac[:, :n]
+
+    def render(self, origins, directions) -> dict:
+        """Render (N,3) rays with every member.
+
+        Returns:
+            dict: ``rgb`` (K,N,3) in [0,1], ``distance`` (K,N) expected metric
+            distance of the hit from the origin (0 where opacity ~ 0),
+            ``opacity`` (K,N).
+        """
+        rgb, dist, opac = self._render_all(origins, directions)
+        return dict(rgb=rgb, distance=dist, opacity=opac)
+
+    def predict(self, origins, directions) -> dict:
+        """Per-ray statistics across members.
+
+        Returns:
+            dict: ``rgb_mean`` (N,3), ``rgb_var`` (N,3) population variance
+            across members per channel (zeros for K=1), ``distance_mean`` (N,),
+            ``distance_var`` (N,), ``opacity`` (N,) mean over members.
+        """
+        out = self.render(origins, directions)
+        return dict(rgb_mean=out["rgb"].mean(0), rgb_var=out["rgb"].var(0),
+                    distance_mean=out["distance"].mean(0),
+                    distance_var=out["distance"].var(0),
+                    opacity=out["opacity"].mean(0))
+
+    # ----------------------------------------------------------------- fisher
+    def fisher_diag(self, origins, directions, member: int = 0, probes: int = 1,
+                    seed: int = 0) -> np.ndarray:
+        """Hutchinson estimate of diag(J^T J) for one member.
+
+        ``J`` is the Jacobian of the rendered colours of all given rays (N
+        rays x 3 channels) with respect to the member's P parameters
+        (ordering as :meth:`member_params`: grid floats, then 3 background
+        logits). For Rademacher ``v`` (N,3), ``(J^T v)**2`` is an unbiased
+        estimate of ``sum_{r,c} (dC_rc/dtheta)**2``; ``probes`` of them are
+        averaged. Gradients of all ray batches are accumulated before
+        squaring (the estimate needs the full ``J^T v``).
+
+        Returns:
+            (P,) float64.
+        """
+        self._check_member(member)
+        op, dp, n, n_pad = self._pad(origins, directions)
+        B = int(self.config.render_batch)
+        rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(member),)))
+        grid = mi.Float(dr.detach(self._opt["grid"]))
+        bg = mi.Float(dr.detach(self._opt["background"]))
+        acc = np.zeros(self.n_params, np.float64)
+        for _ in range(max(1, int(probes))):
+            v = rng.choice(np.float32([-1.0, 1.0]), size=(n_pad, 3))
+            v[n:] = 0.0  # padding rays do not count
+            dr.enable_grad(grid, bg)
+            params = self.params()
+            params.grid, params.background = grid, bg
+            for s in range(0, n_pad, B):
+                out = render_flat(params, mi.Point3f(op[s:s + B].T),
+                                  mi.Vector3f(dp[s:s + B].T), int(member))
+                vb = mi.Color3f(v[s:s + B].T)
+                dr.backward(dr.sum(dr.dot(out["rgb"], vb)))
+            gg = np.array(dr.grad(grid), np.float64).reshape(-1, self.n_members, 4)[:, member]
+            gg = gg.ravel()
+            gb = np.array(dr.grad(bg), np.float64).reshape(self.n_members, 3)[member]
+            dr.disable_grad(grid, bg)
+            g = np.concatenate([gg, gb])
+            acc += g * g
+        return acc / max(1, int(probes))
+
+    # ----------------------------------------------------------------- save
+    def save(self, path):
+        """Write the ensemble to ``path`` (.npz, see :mod:`.io`)."""
+        from .io import save_ensemble
+
+        return save_ensemble(self, path)
+
+    @classmethod
+    def load(cls, path) -> "Ensemble":
+        """Read an ensemble written by :meth:`save`."""
+        from .io import load_ensemble
+
+        return load_ensemble(cls, path)
+
+    def __repr__(self):
+        return (f"Ensemble(K={self.n_members}, P={self.n_params}, rays={self._n_rays}, "
+                f"step={self._step}, config={json.dumps(self.config.to_dict())})")

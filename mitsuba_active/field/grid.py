@@ -1,0 +1,160 @@
+"""Multi-resolution feature grids over the unit cube, for K members at once.
+
+The parameters of all K members live in **one** flat ``mi.Float`` table of
+``n_entries * K * 4`` values, laid out as ``[entry][member][channel]`` with
+the 4 channels (density logit, r, g, b logits) innermost. Interleaving makes
+each corner lookup of all K members one packet gather of K*4 floats from one
+cache line (and one packet scatter-add in the backward pass), which is what
+lets one kernel train/render every member at little more than the cost of
+one (see :mod:`mitsuba_active.field.render`).
+
+Coarse levels are dense (vertex ``(x, y, z)`` at ``x + y*(r+1) + z*(r+1)**2``);
+levels with more vertices than ``2**log2_table_size`` use the Instant-NGP
+spatial hash ``(x * 1) ^ (y * 2654435761) ^ (z * 805459861) mod T``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .config import FieldConfig
+
+#: Channels per vertex: density logit + RGB logits.
+N_CHANNELS = 4
+
+_PRIMES = (1, 2654435761, 805459861)
+
+
+@dataclass(frozen=True)
+class GridLayout:
+    """Static description of the per-member table (Python ints only)."""
+
+    resolutions: tuple  #: cells per axis of each level
+    sizes: tuple  #: vertices (table entries) of each level
+    offsets: tuple  #: first entry of each level
+    dense: tuple  #: True where the level is stored without hashing
+    n_entries: int  #: table entries per member (each holds 4 floats)
+
+    @property
+    def n_grid_params(self) -> int:
+        """Floats of grid parameters per member."""
+        return self.n_entries * N_CHANNELS
+
+    @staticmethod
+    def from_config(cfg: FieldConfig) -> "GridLayout":
+        table = 1 << int(cfg.log2_table_size)
+        res, sizes, offs, dense = [], [], [], []
+        off = 0
+        for level in range(int(cfg.n_levels)):
+            r = max(1, int(round(cfg.base_resolution * cfg.per_level_scale ** level)))
+            n_vert = (r + 1) ** 3
+            is_dense = n_vert <= table
+            size = n_vert if is_dense else table
+            res.append(r)
+            sizes.append(size)
+            offs.append(off)
+            dense.append(is_dense)
+            off += size
+        return GridLayout(tuple(res), tuple(sizes), tuple(offs), tuple(dense), off)
+
+
+def init_grid(layout: GridLayout, cfg: FieldConfig, seeds) -> np.ndarray:
+    """Initial tables for the members' seeds: float32 array (K, n_entries, 4)
+    (member-major; transpose to (n_entries, K, 4) for the Dr.Jit table).
+
+    Each member draws from its own ``numpy`` generator so member ``k`` of an
+    ensemble is the same whatever K is.
+    """
+    out = np.empty((len(seeds), layout.n_entries, N_CHANNELS), np.float32)
+    for k, s in enumerate(seeds):
+        rng = np.random.default_rng(s)
+        out[k] = rng.uniform(-cfg.init_scale, cfg.init_scale,
+                             size=(layout.n_entries, N_CHANNELS))
+    return out
+
+
+def reduce_mode():
+    """Scatter mode of the gathers' adjoint (the backward pass).
+
+    On the CPU, ``ReduceMode.Expand`` gives every thread a private copy of
+    the gradient table and sums them afterwards; Dr.Jit only picks it
+    automatically below ``dr.expand_threshold()`` (1 M entries), and
+    with contended atomics instead the backward pass is ~6x slower here. On
+    the GPU, Dr.Jit's default atomics are the right choice.
+    """
+    if dr.backend_v(mi.Float) == dr.JitBackend.LLVM:
+        return dr.ReduceMode.Expand
+    return dr.ReduceMode.Auto
+
+
+def _corners(layout: GridLayout, u):
+    """Yield (level, table entry index, trilinear weight) for the 8 corners
+    of every level around normalised positions ``u`` (``mi.Point3f``)."""
+    x_unit = dr.clip(mi.Vector3f(u), 0.0, 1.0)
+    for level, r in enumerate(layout.resolutions):
+        x = x_unit * float(r)
+        # Cell index clamped to r-1 so that corner x0+1 <= r stays in the grid.
+        x0f = dr.minimum(dr.floor(x), float(r - 1))
+        f = x - x0f
+        x0 = mi.Vector3u(x0f)
+        stride = r + 1
+        for corner in range(8):
+            bits = ((corner >> 0) & 1, (corner >> 1) & 1, (corner >> 2) & 1)
+            w = None
+            c = []
+            for a in range(3):
+                wa = f[a] if bits[a] else 1.0 - f[a]
+                w = wa if w is None else w * wa
+                c.append(x0[a] + 1 if bits[a] else x0[a])
+            if layout.dense[level]:
+                idx = c[0] + c[1] * stride + c[2] * (stride * stride)
+            else:
+                idx = (c[0] * _PRIMES[0]) ^ (c[1] * _PRIMES[1]) ^ (c[2] * _PRIMES[2])
+                idx = idx & (layout.sizes[level] - 1)
+            yield level, idx + layout.offsets[level], w
+
+
+def query(grid, layout: GridLayout, n_members: int, u, member=None, active=True):
+    """Summed trilinear grid features at positions ``u`` of the unit cube.
+
+    The table is member-interleaved: entry ``e`` of member ``k`` occupies
+    floats ``(e*K + k)*4 ... +3``. All K members' features of one vertex thus
+    share a cache line and are read by *one* packet gather, and the corner
+    indices/weights are computed once for all members: a K-member query
+    costs little more than a single-member one.
+
+    Args:
+        grid: ``mi.Float`` table of ``n_entries * K * 4`` values.
+        layout: :class:`GridLayout`; n_members: K.
+        u: ``mi.Point3f`` positions in ``[0, 1]^3`` (box-normalised; values
+           outside are clamped to the border cells).
+        member: None for all members, or an int / ``mi.UInt32`` per point.
+        active: mask; inactive lanes read nothing and return 0.
+
+    Returns:
+        ``mi.Vector4f`` raw (density logit, r, g, b logits) summed over
+        levels when ``member`` is given, else a list of K of them.
+    """
+    K = int(n_members)
+    mode = reduce_mode()
+    if member is None:
+        XF = type(mi.ArrayXf())
+        acc = [[mi.Float(0.0)] * N_CHANNELS for _ in range(K)]
+        for _, idx, w in _corners(layout, u):
+            # One K*4-wide packet gather per corner (index in units of K*4).
+            v = dr.gather(XF, grid, idx, active, mode=mode, shape=(K * N_CHANNELS, dr.width(idx)))
+            for k in range(K):
+                for ch in range(N_CHANNELS):
+                    acc[k][ch] = dr.fma(v[k * N_CHANNELS + ch], w, acc[k][ch])
+        return [mi.Vector4f(*a) for a in acc]
+    mem = mi.UInt32(member)
+    acc = [mi.Float(0.0)] * N_CHANNELS
+    for _, idx, w in _corners(layout, u):
+        v = dr.gather(mi.Vector4f, grid, idx * K + mem, active, mode=mode)
+        for ch in range(N_CHANNELS):
+            acc[ch] = dr.fma(v[ch], w, acc[ch])
+    return mi.Vector4f(*acc)

@@ -1,0 +1,101 @@
+"""Ensemble file format (``.npz``, version 1).
+
+An uncompressed NumPy ``.npz`` archive with these arrays:
+
+=====================  ================  ==========================================
+key                    dtype / shape     meaning
+=====================  ================  ==========================================
+``format_version``     int64 ()          1
+``kind``               str ()            ``"mitsuba_active.field.Ensemble"``
+``config``             str ()            JSON of :class:`FieldConfig`
+``bbox_min/bbox_max``  float64 (3,)      unpadded bounding box (scene units)
+``n_members``          int64 ()          K
+``seed``               int64 ()          base seed
+``step``               int64 ()          training steps taken so far
+``grid``               float32 (K,E,4)   grid table: E entries per member, channels
+                                         (density logit, r, g, b logits); levels
+                                         concatenated in order, dense levels
+                                         x-fastest, hashed levels by hash slot
+``background``         float32 (K,3)     background colour logits (sigmoid -> RGB)
+``adam_t``             int64 ()          Adam step count (optional, for warm start)
+``adam_{m,v}_grid``    float32 (E*K*4,)  Adam moments of ``grid`` in the in-memory
+                                         member-interleaved order [entry][member]
+                                         [channel] (optional)
+``adam_{m,v}_background`` float32 (K*3,) Adam moments of ``background`` (optional)
+=====================  ================  ==========================================
+
+Training rays are not stored (call ``set_rays`` again after loading).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import drjit as dr
+import numpy as np
+
+from ..errors import UserError
+from .config import FieldConfig
+from .grid import N_CHANNELS
+
+FORMAT_VERSION = 1
+KIND = "mitsuba_active.field.Ensemble"
+
+
+def save_ensemble(ens, path) -> Path:
+    """Write ``ens`` to ``path`` (a ``.npz`` suffix is added by numpy if missing)."""
+    path = Path(path)
+    K = ens.n_members
+    arrays = dict(
+        format_version=np.int64(FORMAT_VERSION),
+        kind=np.array(KIND),
+        config=np.array(json.dumps(ens.config.to_dict())),
+        bbox_min=ens.bbox_min.astype(np.float64),
+        bbox_max=ens.bbox_max.astype(np.float64),
+        n_members=np.int64(K),
+        seed=np.int64(ens.seed),
+        step=np.int64(ens._step),
+        grid=ens.grid_numpy(),
+        background=ens._numpy("background").reshape(K, 3),
+    )
+    st = ens._opt.state
+    arrays["adam_t"] = np.int64(int(np.array(st["grid"][3][0]).ravel()[0]))
+    for key in ("grid", "background"):
+        _, m, v, _ = st[key][3]
+        arrays[f"adam_m_{key}"] = np.array(m, np.float32)
+        arrays[f"adam_v_{key}"] = np.array(v, np.float32)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as f:
+        np.savez(f, **arrays)
+    return path
+
+
+def load_ensemble(cls, path):
+    """Read an ensemble written by :func:`save_ensemble`."""
+    path = Path(path)
+    try:
+        z = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise UserError(f"cannot read ensemble file {path}: {exc}") from None
+    with z:
+        if "format_version" not in z or str(z.get("kind", "")) != KIND:
+            raise UserError(f"{path} is not a mitsuba-active field ensemble")
+        version = int(z["format_version"])
+        if version != FORMAT_VERSION:
+            raise UserError(f"{path}: unsupported field format_version {version} "
+                            f"(this version reads {FORMAT_VERSION})")
+        cfg = FieldConfig.from_dict(json.loads(str(z["config"])))
+        ens = cls(z["bbox_min"], z["bbox_max"], n_members=int(z["n_members"]),
+                  config=cfg, seed=int(z["seed"]))
+        grid = z["grid"]
+        if grid.shape != (ens.n_members, ens.layout.n_entries, N_CHANNELS):
+            raise UserError(f"{path}: grid shape {grid.shape} does not match its config")
+        adam = None
+        if "adam_t" in z:
+            adam = {key: (int(z["adam_t"]), z[f"adam_m_{key}"], z[f"adam_v_{key}"])
+                    for key in ("grid", "background")}
+        ens._make_optimizer(grid, z["background"], adam)
+        ens._step = int(z["step"])
+    dr.eval(ens._opt["grid"], ens._opt["background"])
+    return ens

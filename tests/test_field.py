@@ -1,0 +1,269 @@
+"""Tests of mitsuba_active.field: renderer gradients, fitting, ensembles, I/O.
+
+Everything runs on tiny grids and an analytic textured sphere so the file
+stays well under a minute on 2 CPU cores.
+"""
+
+import numpy as np
+import pytest
+
+import mitsuba_active  # noqa: F401  (variant first)
+import drjit as dr
+import mitsuba as mi
+
+from mitsuba_active.errors import UserError
+from mitsuba_active.field import Ensemble, FieldConfig
+from mitsuba_active.field.render import composite, render_flat
+
+BOX = ([-0.7] * 3, [0.7] * 3)
+
+
+def tiny_config(**kw):
+    base = dict(n_levels=2, base_resolution=8, log2_table_size=12, n_samples=32,
+                batch_rays=1024, render_batch=1024, lr=0.05)
+    base.update(kw)
+    return FieldConfig(**base)
+
+
+def camera_rays(cam, width=24, height=24, fov=40.0):
+    cam = np.asarray(cam, float)
+    f = -cam / np.linalg.norm(cam)
+    r = np.cross(f, [0.0, 1.0, 0.0])
+    if np.linalg.norm(r) < 1e-6:
+        r = np.cross(f, [1.0, 0.0, 0.0])
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    t = np.tan(np.radians(fov) / 2)
+    ys, xs = np.meshgrid((np.arange(height) + 0.5) / height * 2 - 1,
+                         (np.arange(width) + 0.5) / width * 2 - 1, indexing="ij")
+    d = f + xs.reshape(-1, 1) * t * r - ys.reshape(-1, 1) * t * u
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return np.repeat(cam[None], width * height, 0).astype(np.float32), d.astype(np.float32)
+
+
+def sphere_truth(o, d, radius=0.5):
+    """Colour, distance and hit of a textured sphere on a white background."""
+    b = np.sum(o * d, 1)
+    disc = b * b - (np.sum(o * o, 1) - radius ** 2)
+    hit = disc > 0
+    t = np.where(hit, -b - np.sqrt(np.maximum(disc, 0.0)), 0.0)
+    p = o + t[:, None] * d
+    rgb = np.where(hit[:, None], 0.5 + 0.35 * np.sin(4 * p + np.arange(3)), 1.0)
+    return rgb.astype(np.float32), t.astype(np.float32), hit
+
+
+def views(cams, **kw):
+    o, d = zip(*[camera_rays(c, **kw) for c in cams])
+    o, d = np.concatenate(o), np.concatenate(d)
+    return (o, d) + sphere_truth(o, d)
+
+
+def psnr(a, b):
+    return -10 * np.log10(np.mean((a - b) ** 2))
+
+
+def test_composite_gradient_matches_finite_differences():
+    rng = np.random.default_rng(1)
+    S = 16
+    tau_np = rng.uniform(0.0, 0.4, 2 * S).astype(np.float64)
+    col_np = rng.uniform(0, 1, (3, 2 * S))
+    t_np = np.sort(rng.uniform(1, 3, 2 * S))
+    v = rng.normal(size=(3, 2))
+    a = rng.normal(size=2)
+
+    def f(tau_vals):
+        tau = mi.Float(tau_vals)
+        dr.enable_grad(tau)
+        _, rgb, dsum, opac = composite(tau, mi.Color3f(col_np), mi.Float(t_np), S)
+        y = dr.sum(dr.dot(rgb, mi.Color3f(v))) + dr.sum(mi.Float(a) * (dsum + opac))
+        return y, tau
+
+    y, tau = f(tau_np)
+    dr.backward(y)
+    g = np.array(dr.grad(tau))
+    eps = 1e-2
+    for i in rng.choice(2 * S, 6, replace=False):
+        tp, tm = tau_np.copy(), tau_np.copy()
+        tp[i] += eps
+        tm[i] -= eps
+        fd = (f(tp)[0][0] - f(tm)[0][0]) / (2 * eps)
+        assert abs(fd - g[i]) <= 2e-3 + 1e-2 * abs(fd), (i, fd, g[i])
+
+
+def test_render_gradient_wrt_grid_matches_finite_differences():
+    cfg = tiny_config(n_samples=16)
+    ens = Ensemble(*BOX, n_members=2, config=cfg, seed=3)
+    o, d = camera_rays([0.3, 0.4, 2.5], width=6, height=6)
+    params = ens.params()
+    grid_np = np.array(dr.detach(params.grid), np.float64)
+    rng = np.random.default_rng(0)
+    v = rng.normal(size=(3, o.shape[0]))
+    a = rng.normal(size=o.shape[0])
+
+    def f(g_vals, grad=False):
+        params.grid = mi.Float(g_vals)
+        if grad:
+            dr.enable_grad(params.grid)
+        out = render_flat(params, mi.Point3f(o.T), mi.Vector3f(d.T), 1)
+        y = dr.sum(dr.dot(out["rgb"], mi.Color3f(v))) + dr.sum(mi.Float(a) * out["distance"])
+        return y, params.grid
+
+    y, g = f(grid_np, grad=True)
+    dr.backward(y)
+    grad = np.array(dr.grad(g))
+    # Member 0 must get no gradient from rays rendered with member 1.
+    per_member = np.abs(grad.reshape(-1, 2, 4)).sum(axis=(0, 2))
+    assert per_member[0] == 0 and per_member[1] > 0
+    top = np.argsort(-np.abs(grad))[:8]
+    eps = 2e-2
+    for i in top:
+        gp, gm = grid_np.copy(), grid_np.copy()
+        gp[i] += eps
+        gm[i] -= eps
+        fd = (f(gp)[0][0] - f(gm)[0][0]) / (2 * eps)
+        assert abs(fd - grad[i]) <= 1e-3 + 5e-2 * abs(grad[i]), (i, fd, grad[i])
+
+
+def test_fit_one_view_reproduces_it():
+    o, d, rgb, dist, hit = views([[0.0, 0.3, 2.2]], width=32, height=32)
+    ens = Ensemble(*BOX, n_members=1, config=tiny_config(n_levels=3, lr=0.1), seed=0)
+    ens.set_rays(o, d, rgb, dist, hit)
+    before = psnr(ens.render(o, d)["rgb"][0], rgb)
+    losses = ens.train(150)
+    after = psnr(ens.render(o, d)["rgb"][0], rgb)
+    assert losses.shape == (150,) and np.all(np.isfinite(losses))
+    assert losses[-10:].mean() < 0.2 * losses[:10].mean()
+    assert after > 24.0 and after > before + 10.0, (before, after)
+
+
+def test_distance_loss_fits_metric_distance():
+    o, d, rgb, dist, hit = views([[0.0, 0.3, 2.2], [2.2, 0.3, 0.0]], width=24, height=24)
+    cfg = tiny_config(n_levels=3, lr=0.1, distance_weight=1.0)
+    ens = Ensemble(*BOX, n_members=1, config=cfg, seed=0)
+    ens.set_rays(o, d, rgb, dist, hit)
+    ens.train(150)
+    out = ens.render(o, d)
+    rel = np.abs(out["distance"][0][hit] - dist[hit]) / dist[hit]
+    assert np.median(rel) < 0.03, np.median(rel)
+    assert out["opacity"][0][hit].mean() > 0.6
+
+
+def test_ensemble_variance_lower_on_training_rays():
+    train = views([[0.0, 0.2, 2.2], [0.8, 0.2, 2.0]], width=24, height=24)
+    unseen = views([[0.0, 0.2, -2.2]], width=24, height=24)
+    ens = Ensemble(*BOX, n_members=3, config=tiny_config(n_levels=3, lr=0.1), seed=7)
+    assert ens.n_members == 3
+    ens.set_rays(*train)
+    ens.train(100)
+    st_train = ens.predict(train[0], train[1])
+    st_unseen = ens.predict(unseen[0], unseen[1])
+    assert st_train["rgb_mean"].shape == (train[0].shape[0], 3)
+    assert st_train["distance_var"].shape == (train[0].shape[0],)
+    assert st_train["rgb_var"].mean() < 0.5 * st_unseen["rgb_var"].mean()
+
+
+def test_single_member_has_zero_variance():
+    o, d = camera_rays([0.0, 0.0, 2.0], width=8, height=8)
+    ens = Ensemble(*BOX, n_members=1, config=tiny_config(), seed=0)
+    st = ens.predict(o, d)
+    assert np.all(st["rgb_var"] == 0) and np.all(st["distance_var"] == 0)
+
+
+def test_warm_start_keeps_parameters():
+    a = views([[0.0, 0.3, 2.2]], width=16, height=16)
+    ens = Ensemble(*BOX, n_members=1, config=tiny_config(), seed=0)
+    ens.set_rays(*a)
+    ens.train(30)
+    p = ens.member_params(0)
+    ens.set_rays(*views([[2.2, 0.3, 0.0]], width=16, height=16))
+    assert np.array_equal(p, ens.member_params(0))
+
+
+def test_training_is_deterministic_under_seed():
+    a = views([[0.0, 0.3, 2.2]], width=16, height=16)
+    runs = []
+    for seed in (5, 5, 6):
+        ens = Ensemble(*BOX, n_members=2, config=tiny_config(), seed=seed)
+        ens.set_rays(*a)
+        runs.append(ens.train(15))
+    # Float atomics may reorder sums across threads: equal up to rounding.
+    np.testing.assert_allclose(runs[0], runs[1], rtol=1e-4)
+    assert not np.allclose(runs[0], runs[2], rtol=1e-4)
+
+
+def test_save_load_renders_identically(tmp_path):
+    a = views([[0.0, 0.3, 2.2]], width=16, height=16)
+    ens = Ensemble(*BOX, n_members=2, config=tiny_config(), seed=1)
+    ens.set_rays(*a)
+    ens.train(20)
+    o, d = camera_rays([1.0, 1.0, 2.0], width=16, height=16)
+    before = ens.render(o, d)
+    path = tmp_path / "field.npz"
+    ens.save(path)
+    ens2 = Ensemble.load(path)
+    after = ens2.render(o, d)
+    for key in ("rgb", "distance", "opacity"):
+        assert np.array_equal(before[key], after[key]), key
+    assert ens2.config == ens.config and ens2.n_members == 2
+    assert np.array_equal(ens2.member_params(1), ens.member_params(1))
+    # Warm start continues from the saved Adam state.
+    ens2.set_rays(*a)
+    assert np.isfinite(ens2.train(2)).all()
+
+
+def test_load_rejects_other_files(tmp_path):
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, x=np.zeros(3))
+    with pytest.raises(UserError):
+        Ensemble.load(bad)
+
+
+def test_divergence_raises_user_error():
+    a = views([[0.0, 0.3, 2.2]], width=16, height=16)
+    ens = Ensemble(*BOX, n_members=1, config=tiny_config(lr=1e38), seed=0)
+    ens.set_rays(*a)
+    with pytest.raises(UserError, match="diverged"):
+        ens.train(30)
+
+
+def test_fisher_diag_is_unbiased_estimate_of_jtj_diagonal():
+    cfg = tiny_config(n_levels=1, base_resolution=2, n_samples=8, render_batch=4)
+    ens = Ensemble(*BOX, n_members=2, config=cfg, seed=2)
+    o, d = camera_rays([0.2, 0.3, 2.0], width=2, height=2)
+    est = ens.fisher_diag(o, d, member=1, probes=400, seed=0)
+    assert est.shape == (ens.n_params,) and est.dtype == np.float64
+    # Exact diagonal: one backward pass per ray and channel.
+    params = ens.params()
+    exact = np.zeros(ens.n_params)
+    for r in range(o.shape[0]):
+        for c in range(3):
+            g = mi.Float(dr.detach(params.grid))
+            b = mi.Float(dr.detach(params.background))
+            dr.enable_grad(g, b)
+            params.grid, params.background = g, b
+            out = render_flat(params, mi.Point3f(o[r:r + 1].T), mi.Vector3f(d[r:r + 1].T), 1)
+            dr.backward(out["rgb"][c])
+            gg = np.array(dr.grad(g)).reshape(-1, 2, 4)[:, 1].ravel()
+            jac = np.concatenate([gg, np.array(dr.grad(b)).reshape(2, 3)[1]])
+            exact += jac.astype(np.float64) ** 2
+    big = exact > 0.05 * exact.max()
+    assert big.sum() >= 3
+    rel = np.abs(est[big] - exact[big]).sum() / exact[big].sum()
+    assert rel < 0.2, rel
+    assert np.all(est[exact == 0] == 0)
+
+
+def test_render_rays_dr_matches_numpy_render():
+    from mitsuba_active.field import render_rays_dr
+
+    ens = Ensemble(*BOX, n_members=2, config=tiny_config(), seed=4)
+    o, d = camera_rays([0.5, 0.2, 2.0], width=8, height=8)
+    ref = ens.render(o, d)
+    ray = mi.Ray3f(mi.Point3f(o.T), mi.Vector3f(d.T))
+    member = mi.UInt32(np.arange(o.shape[0]) % 2)
+    rgb, dist, opac = render_rays_dr(ens, ray.o, ray.d, member)
+    m = np.arange(o.shape[0]) % 2
+    idx = np.arange(o.shape[0])
+    np.testing.assert_allclose(np.array(rgb).T, ref["rgb"][m, idx], atol=1e-5)
+    np.testing.assert_allclose(np.array(dist), ref["distance"][m, idx], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(np.array(opac), ref["opacity"][m, idx], atol=1e-5)

@@ -113,7 +113,6 @@ def test_rfe_prefers_the_unseen_side(sphere_xml, tmp_path):
     state = PlanningState(cams, seen, ens, sparse_candidate_rays(cams, 128, 0), np.random.default_rng(0))
     picks, scores = make_planner("rfe").select(state, 1)
     x = np.array([c.position[0] for c in cams])
-    print(np.round(x, 2), np.round(scores, 4), picks)
     assert scores[x < -0.9].mean() > 2 * scores[seen].mean()
     assert x[picks[0]] < 0.5
 

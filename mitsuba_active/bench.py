@@ -40,8 +40,8 @@ SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", 
 #: subset in minutes on two cores; ``full`` uses paper-like settings.
 PROFILES = {
     "quick": dict(seeds=[0], resolution=32, candidates=30, heldout=8, spp=16, ensemble=2,
-                  initial_steps=100, steps_per_view=20, eval_steps=250, rays_per_candidate=64,
-                  field={"batch_rays": 1024, "n_samples": 32}),
+                  initial_steps=150, steps_per_view=30, eval_steps=600, rays_per_candidate=64,
+                  field={"batch_rays": 2048, "n_samples": 32}),
     "full": dict(seeds=[0, 1, 2, 3, 4], resolution=64, candidates=100, heldout=20, spp=64, ensemble=2),
 }
 TABLE_VIEWS = (10, 20)

@@ -94,7 +94,7 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
     from tqdm import tqdm
 
     from .env import SceneSource
-    from .imageio_utils import colorize, write_exr, write_png, srgb_to_linear
+    from .imageio_utils import atomic_write, colorize, srgb_to_linear, write_exr, write_png
 
     source = SceneSource.from_xml(scene_xml or BUNDLED_SCENE, rig, n_candidates, n_heldout, resolution, fov,
                                   spp=spp)
@@ -113,8 +113,6 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
         write_png(out / f"{stem}.png", v.rgb)
         write_png(out / f"{stem}_distance.png", colorize(v.distance, v.mask))
         records.append({"file": f"{stem}.png", **cam.to_dict(), "intrinsics": cam.intrinsics().tolist()})
-    from .imageio_utils import atomic_write
-
     with atomic_write(out / "cameras.json") as tmp:
         tmp.write_text(json.dumps({"scene": str(source.scene.path), "split": split, "views": records}, indent=1))
     click.echo(f"wrote {len(cams)} views to {out}")

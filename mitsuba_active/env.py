@@ -157,6 +157,12 @@ class ActiveViewEnv(gym.Env):
         cam = Camera(np.asarray(pose, dtype=np.float64), ref.fov, ref.width, ref.height, ref.near, ref.far)
         return self._obs(self.source.render(cam))
 
+    def restore(self, captured: list[int]) -> None:
+        """Start over with exactly these candidates captured, in order (to resume a run)."""
+        self.captured, self.views = [], []
+        for i in captured:
+            self._capture(int(i))
+
     def _capture(self, index: int) -> View:
         view = self.source.candidate_view(index)
         self.captured.append(index)

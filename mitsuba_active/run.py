@@ -274,8 +274,7 @@ class Run:
         if resumed:
             self.rng.bit_generator.state = self.record["rng_state"]
             self.env.reset(seed=cfg.seed, options={"initial_views": 0})
-            for i in self.record["captured"]:
-                self.env._capture(int(i))
+            self.env.restore(self.record["captured"])
             self.log(f"resuming {self.out}: {len(self.env.captured)} of {cfg.budget} views captured")
         else:
             self.env.reset(seed=cfg.seed, options={"initial_views": cfg.initial_views})

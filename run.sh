@@ -6,10 +6,10 @@
 #   ./run.sh setup             only install: LLVM >= 19 (Debian's libllvm19), a virtualenv in .venv, the package
 #   ./run.sh <command> ...     any other mitsuba-active command (scene, render, export, bench, ...)
 #
-# Needs python3 (>= 3.10). Installs missing system packages with apt-get (as root, or through sudo).
+# Needs python3 (>= 3.11). Installs missing system packages with apt-get (as root, or through sudo).
+# Commands run from the folder you call this script from; the virtualenv lives in the clone.
 set -euo pipefail
-cd "$(dirname "$0")"
-ROOT=$PWD
+ROOT=$(cd "$(dirname "$0")" && pwd)
 VENV=${MITSUBA_ACTIVE_VENV:-$ROOT/.venv}
 
 say() { echo "run.sh: $*" >&2; }
@@ -17,15 +17,19 @@ say() { echo "run.sh: $*" >&2; }
 as_root() {
     if [ "$(id -u)" = 0 ]; then "$@"
     elif command -v sudo >/dev/null 2>&1; then sudo "$@"
-    else say "need root to run: $*"; exit 1
+    else return 1
     fi
 }
 
-apt_install() {
-    command -v apt-get >/dev/null 2>&1 || { say "cannot install $* without apt-get; install it with your package manager"; exit 1; }
-    say "installing $* (apt-get)"
-    as_root apt-get update -qq >/dev/null
-    as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >/dev/null
+apt_install() {  # apt_install WHAT-FOR PACKAGE...
+    local why=$1; shift
+    if ! command -v apt-get >/dev/null 2>&1; then
+        say "missing $why: install $* with your package manager"; exit 1
+    fi
+    say "installing $* (apt-get) for $why"
+    as_root apt-get update -qq >/dev/null &&
+        as_root env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >/dev/null ||
+        { say "could not install $* (needs root or sudo): ask an administrator to run 'apt-get install $*'"; exit 1; }
 }
 
 have_llvm() {  # an LLVM shared library of version >= 19, where Dr.Jit looks for one
@@ -40,18 +44,24 @@ have_llvm() {  # an LLVM shared library of version >= 19, where Dr.Jit looks for
 }
 
 setup() {
-    have_llvm || apt_install libllvm19
-    command -v python3 >/dev/null 2>&1 || apt_install python3 python3-venv
+    have_llvm || apt_install "LLVM >= 19 for Dr.Jit (or set DRJIT_LIBLLVM_PATH)" libllvm19
+    command -v python3 >/dev/null 2>&1 || apt_install "Python 3" python3 python3-venv
     if [ ! -x "$VENV/bin/python" ]; then
-        python3 -m venv "$VENV" 2>/dev/null || { rm -rf "$VENV"; apt_install python3-venv; python3 -m venv "$VENV"; }
+        local fresh=0
+        [ -e "$VENV" ] || fresh=1
+        if ! python3 -m venv "$VENV" >/dev/null 2>&1; then
+            [ "$fresh" = 1 ] && rm -rf "$VENV"  # only what this script just created
+            apt_install "Python's venv module" python3-venv
+            python3 -m venv "$VENV"
+        fi
     fi
     # Reinstall only when the package metadata changed.
     local stamp="$VENV/.mitsuba-active-installed" want
-    want=$(cat pyproject.toml | sha256sum | cut -d' ' -f1)
+    want=$(sha256sum "$ROOT/pyproject.toml" | cut -d' ' -f1)
     if [ "$(cat "$stamp" 2>/dev/null)" != "$want" ]; then
         say "installing mitsuba-active and its dependencies into $VENV"
         "$VENV/bin/python" -m pip install -q --upgrade pip >/dev/null
-        "$VENV/bin/python" -m pip install -q -e ".[test]"
+        "$VENV/bin/python" -m pip install -q -e "$ROOT[test]"
         echo "$want" > "$stamp"
     fi
 }
@@ -61,6 +71,6 @@ cmd=${1:-plan}
 setup
 case "$cmd" in
     setup) say "ready: $VENV/bin/mitsuba-active" ;;
-    test)  exec "$VENV/bin/python" -m pytest -q "$@" ;;
+    test)  cd "$ROOT" && exec "$VENV/bin/python" -m pytest -q "$@" ;;
     *)     exec "$VENV/bin/mitsuba-active" "$cmd" "$@" ;;
 esac

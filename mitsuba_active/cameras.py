@@ -247,10 +247,11 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     height = height or width
     if rig not in RIG_KINDS:
         raise UserError(f"unknown rig '{rig}'; choose one of {', '.join(RIG_KINDS)}")
-    if rig == "auto":
-        rig = "interior" if scene.interior else "sphere"
-    if rig == "interior":
-        fov = fov or 70.0
+    generated = rig
+    if rig in ("auto", "xml"):  # the XML's own sensors get held-out views of the right kind
+        generated = "interior" if scene.interior else "sphere"
+    if generated == "interior":
+        fov = 70.0 if fov is None else fov
 
         def make(n, off):
             # Over-generate, then drop cameras that would sit inside furniture.
@@ -261,10 +262,11 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
                 raise UserError(f"only {len(cams)} free camera positions found inside {scene.path}")
             return cams[:: max(1, len(cams) // n)][:n]
     else:
-        fov = fov or 40.0
+        fov = 40.0 if fov is None else fov
+        if not 0.0 < fov < 180.0:
+            raise UserError(f"field of view must be in (0, 180) degrees, got {fov}")
         radius = 1.05 * scene.radius / math.sin(math.radians(fov) / 2)
-        kind = {"xml": "sphere"}.get(rig, rig)
-        fn = {"sphere": fibonacci_sphere, "hemisphere": hemisphere, "rings": rings}[kind]
+        fn = {"sphere": fibonacci_sphere, "hemisphere": hemisphere, "rings": rings}[generated]
         make = lambda n, off: fn(n, scene.center, radius, fov, width, height, off, up=scene.up)  # noqa: E731
     if rig == "xml":
         if not scene.sensors:

@@ -143,9 +143,10 @@ def _parse_counts(text: str) -> list[int]:
               help="Sparse rays scored per candidate view.")
 @click.option("--score", "score_form", type=click.Choice(["sum", "log"]), default="sum", show_default=True,
               help="rfe: sum of variances or sum of log-variances.")
-@click.option("--steps-per-view", type=int, default=None, help="Ensemble training steps per captured view.")
+@click.option("--steps-per-view", type=int, default=None,
+              help="Ensemble training steps per captured view (warm start) [50].")
 @click.option("--eval-views", default="5,10,15,20", show_default=True, help="View counts to evaluate at.")
-@click.option("--eval-steps", type=int, default=None, help="Training steps of each evaluation field.")
+@click.option("--eval-steps", type=int, default=None, help="Training steps of each evaluation field [1500].")
 @click.option("--distance-weight", type=float, default=0.0, show_default=True,
               help="Weight of the distance loss (0: photometric only).")
 @click.option("--out", "out", type=click.Path(file_okay=False), default=None,

@@ -236,14 +236,23 @@ class Run:
                 raise UserError(f"{self.record_path} is damaged ({exc}); remove it to start over") from None
             if rec.get("config") != self._config_dict():
                 raise UserError(f"{self.out} holds a run with other settings; choose another --out folder")
+            if (rec.get("content_hash") != self._content_hash()
+                    or rec.get("candidates") != [c.to_dict() for c in self.source.candidates]):
+                raise UserError(f"{self.out} holds a run of a scene that has changed since; "
+                                "choose another --out folder")
             self.record = rec
             return True
         self.record = {"format": RUN_FORMAT, "config": self._config_dict(),
                        "planner_options": self.planner.options(), "scene": self.source.name,
                        "candidates": [c.to_dict() for c in self.source.candidates],
                        "heldout": [c.to_dict() for c in self.source.heldout],
+                       "content_hash": self._content_hash(),
                        "captured": [], "rounds": [], "metrics": [], "finished": False}
         return False
+
+    def _content_hash(self):
+        scene = getattr(self.source, "scene", None)
+        return getattr(scene, "content_hash", None)
 
     def _save_record(self) -> None:
         now = time.perf_counter()
@@ -254,9 +263,17 @@ class Run:
             tmp.write_text(json.dumps(self.record, indent=1, default=_json_default))
 
     def _save_ensemble(self) -> None:
-        if self.ensemble is not None:
-            with atomic_write(self.out / "ensemble.npz") as tmp:
-                self.ensemble.save(str(tmp))
+        """Save the ensemble under a name run.json then points to, so the two always match."""
+        if self.ensemble is None:
+            return
+        previous = self.record.get("ensemble_file")
+        name = f"ensemble_{len(self.env.captured):03d}.npz"
+        with atomic_write(self.out / name) as tmp:
+            self.ensemble.save(str(tmp))
+        self.record["ensemble_file"] = name
+        self._save_record()
+        if previous and previous != name:
+            (self.out / previous).unlink(missing_ok=True)
 
     def _save_view(self, n: int, index: int, view: View) -> None:
         stem = self.out / "views" / f"view_{n:03d}"
@@ -290,11 +307,11 @@ class Run:
             state.candidate_rays = sparse_candidate_rays(self.source.candidates, cfg.rays_per_candidate,
                                                          cfg.seed + 1)
             self.ensemble = make_ensemble(self.source, cfg, cfg.ensemble, cfg.seed)
-            ens_path = self.out / "ensemble.npz"
-            if resumed and ens_path.is_file():
+            ens_file = self.record.get("ensemble_file")
+            if resumed and ens_file and (self.out / ens_file).is_file():
                 from .field import Ensemble
 
-                self.ensemble = Ensemble.load(str(ens_path))
+                self.ensemble = Ensemble.load(str(self.out / ens_file))
                 train_on(self.ensemble, self.env.views, 0)
             elif self.env.views:
                 train_on(self.ensemble, self.env.views, cfg.initial_steps + cfg.steps_per_view * len(self.env.views),
@@ -317,7 +334,9 @@ class Run:
                 self._save_view(len(self.env.captured) - 1, int(i), self.env.views[-1])
             t1 = time.perf_counter()
             if self.ensemble is not None:
-                train_on(self.ensemble, self.env.views, cfg.steps_per_view * b)
+                # With no initial views the ensemble meets its first data here.
+                first = cfg.initial_steps if len(self.env.captured) == len(picks) else 0
+                train_on(self.ensemble, self.env.views, first + cfg.steps_per_view * b)
             self.record["captured"] = list(self.env.captured)
             self.record["rounds"].append({
                 "views": len(self.env.captured), "picks": [int(i) for i in picks],
@@ -397,5 +416,8 @@ def _json_default(o):
 
 
 def default_out_dir(scene_path, planner: str, seed: int) -> Path:
-    stem = Path(scene_path).stem if Path(scene_path).suffix else Path(scene_path).name
+    path = Path(scene_path)
+    stem = path.stem if path.suffix else path.name
+    if path.suffix == ".json":  # transforms.json / transforms_train.json: name the dataset folder
+        stem = path.resolve().parent.name
     return Path("runs") / f"{stem}-{planner}-seed{seed}"

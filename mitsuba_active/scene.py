@@ -81,7 +81,10 @@ def load_mesh(path) -> "trimesh.Trimesh":
 def _find_texture(mesh, mesh_path: Path, texture) -> tuple[np.ndarray | None, Path | None]:
     """UVs (V, 2) and texture image path, or (None, None) when the mesh is untextured."""
     uv = getattr(mesh.visual, "uv", None)
-    if texture is False or uv is None or len(uv) != len(mesh.vertices):
+    has_uv = uv is not None and len(uv) == len(mesh.vertices)
+    if texture and not has_uv:
+        raise UserError(f"--texture needs texture coordinates, and {mesh_path} has none")
+    if texture is False or not has_uv:
         return None, None
     if texture:
         tex = Path(texture)
@@ -184,6 +187,8 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
     out_dir = out_xml.parent if str(out_xml.parent) else Path(".")
     out_dir.mkdir(parents=True, exist_ok=True)
     mesh_file = f"{mesh_path.stem}.ply"
+    if (out_dir / mesh_file).resolve() == mesh_path.resolve():
+        mesh_file = f"{mesh_path.stem}_scene.ply"  # never overwrite the user's own mesh
     tex_file = None
     staging = Path(tempfile.mkdtemp(prefix=".mitsuba-active-", dir=out_dir))
     try:

@@ -68,6 +68,9 @@ def ensure_llvm() -> None:
     if user_path:
         if not os.path.exists(user_path):
             raise UserError(f"DRJIT_LIBLLVM_PATH={user_path} does not exist; " + LLVM_FIX)
+        version = _llvm_major(user_path)
+        if version is not None and version < MIN_LLVM:
+            raise UserError(f"DRJIT_LIBLLVM_PATH={user_path} is LLVM {version}; " + LLVM_FIX)
         return
     path = find_llvm()
     if path is None:

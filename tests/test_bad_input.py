@@ -113,3 +113,35 @@ def test_llvm_search_rejects_old_versions(monkeypatch, tmp_path):
     assert variant.find_llvm() is None
     (tmp_path / "libLLVM.so.19.1").write_bytes(b"")
     assert variant.find_llvm().endswith("libLLVM.so.19.1")
+
+
+def test_scene_never_overwrites_the_input_mesh(tmp_path, shared_data):
+    mesh = tmp_path / "suzanne.ply"
+    import trimesh
+
+    trimesh.load(shared_data / "meshes" / "suzanne.obj", force="mesh").export(mesh)
+    before = mesh.read_bytes()
+    code, text = run_cli("scene", mesh, "-o", tmp_path / "suzanne.xml")
+    assert code == 0, text
+    assert mesh.read_bytes() == before and (tmp_path / "suzanne_scene.ply").is_file()
+
+
+def test_texture_without_uvs(tmp_path, shared_data, out):
+    code, text = run_cli("scene", shared_data / "meshes" / "teapot.obj", "-o", out / "t.xml", "--texture",
+                         shared_data / "meshes" / "spot_texture.png")
+    assert_one_line_error(code, text, "texture coordinates")
+    _assert_nothing_written(out)
+
+
+def test_zero_field_of_view(spot_xml, out):
+    code, text = run_cli("render", spot_xml, "-o", out, "--fov", "0")
+    assert_one_line_error(code, text, "field of view")
+    _assert_nothing_written(out)
+
+
+def test_old_llvm_named_by_the_user_is_refused(tmp_path):
+    old = tmp_path / "libLLVM-15.so"
+    old.write_bytes(b"")
+    env = dict(os.environ, DRJIT_LIBLLVM_PATH=str(old))
+    proc = subprocess.run([sys.executable, "-c", "import mitsuba_active"], capture_output=True, text=True, env=env)
+    assert proc.returncode != 0 and "LLVM 15" in proc.stderr and "libllvm19" in proc.stderr

@@ -138,3 +138,19 @@ def test_resume_refuses_a_changed_scene(source, tmp_path, spot_xml):
     (tmp_path / "r" / "run.json").write_text(json.dumps(rec))
     with pytest.raises(UserError, match="changed"):
         _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])
+
+
+def test_plan_command_end_to_end(spot_xml, tmp_path):
+    out = tmp_path / "cli"
+    args = ["plan", str(spot_xml), "--budget", "3", "--initial-views", "1", "--candidates", "6", "--heldout", "2",
+            "--resolution", "16", "--spp", "2", "--eval-views", "3", "--steps-per-view", "5", "--eval-steps", "20",
+            "--rays-per-candidate", "16", "--quiet", "--out", str(out)]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0, res.output
+    assert "held-out PSNR by views captured: 3:" in res.output
+    rec = json.loads((out / "run.json").read_text())
+    assert rec["finished"] and len(rec["captured"]) == 3
+    assert rec["ensemble_file"] == "ensemble_003.npz" and (out / "ensemble_003.npz").is_file()
+    assert not (out / "ensemble_002.npz").exists()
+    res = CliRunner().invoke(main, ["export", str(out)])
+    assert res.exit_code == 0 and (out / "export" / "transforms.json").is_file()

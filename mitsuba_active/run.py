@@ -212,8 +212,7 @@ class Run:
         self.source, self.cfg, self.out = source, cfg, Path(out_dir)
         self.progress, self.log = progress, log
         self.planner = make_planner(cfg.planner, **cfg.planner_options)
-        if self.planner.needs_ensemble and cfg.planner == "rfe" and cfg.ensemble < 2:
-            raise UserError("the rfe planner needs an ensemble of at least 2 members (--ensemble 2 or more)")
+        self.planner.check_ensemble_size(cfg.ensemble)
         self.env = ActiveViewEnv(source, cfg.budget)
         self.rng = np.random.default_rng(cfg.seed)
         self.record = None
@@ -262,20 +261,19 @@ class Run:
         with atomic_write(self.record_path) as tmp:
             tmp.write_text(json.dumps(self.record, indent=1, default=_json_default))
 
-    def _save_ensemble(self) -> None:
-        """Save the ensemble under a name run.json then points to, so the two always match."""
-        if self.ensemble is None:
-            return
+    def _save_round(self) -> None:
+        """Save the ensemble (if any), then run.json pointing to it, so the two always match."""
         previous = self.record.get("ensemble_file")
-        name = f"ensemble_{len(self.env.captured):03d}.npz"
-        with atomic_write(self.out / name) as tmp:
-            self.ensemble.save(str(tmp))
-        self.record["ensemble_file"] = name
+        if self.ensemble is not None:
+            name = f"ensemble_{len(self.env.captured):03d}.npz"
+            with atomic_write(self.out / name) as tmp:
+                self.ensemble.save(str(tmp))
+            self.record["ensemble_file"] = name
         self._save_record()
-        if previous and previous != name:
+        if previous and previous != self.record["ensemble_file"]:
             (self.out / previous).unlink(missing_ok=True)
 
-    def _save_view(self, n: int, index: int, view: View) -> None:
+    def _save_view(self, n: int, view: View) -> None:
         stem = self.out / "views" / f"view_{n:03d}"
         write_png(stem.with_suffix(".png"), view.rgb)
         write_exr(stem.with_suffix(".exr"), {"RGB": srgb_to_linear(view.rgb), "Z": view.distance})
@@ -288,6 +286,9 @@ class Run:
         self.out.mkdir(parents=True, exist_ok=True)
         resumed = self._load_or_start()
         cfg = self.cfg
+        if self.record["finished"]:
+            self.log(f"{self.out} is already complete")
+            return self.record
         if resumed:
             self.rng.bit_generator.state = self.record["rng_state"]
             self.env.reset(seed=cfg.seed, options={"initial_views": 0})
@@ -296,11 +297,8 @@ class Run:
         else:
             self.env.reset(seed=cfg.seed, options={"initial_views": cfg.initial_views})
             self.record["captured"] = list(self.env.captured)
-            for n, (i, v) in enumerate(zip(self.env.captured, self.env.views)):
-                self._save_view(n, i, v)
-        if self.record["finished"]:
-            self.log(f"{self.out} is already complete")
-            return self.record
+            for n, v in enumerate(self.env.views):
+                self._save_view(n, v)
 
         state = PlanningState(self.source.candidates, self.env.captured, None, None, self.rng)
         if self.planner.needs_ensemble:
@@ -331,7 +329,7 @@ class Run:
             t_select = time.perf_counter() - t0
             for i in picks:
                 self.env.step(int(i))
-                self._save_view(len(self.env.captured) - 1, int(i), self.env.views[-1])
+                self._save_view(len(self.env.captured) - 1, self.env.views[-1])
             t1 = time.perf_counter()
             if self.ensemble is not None:
                 # With no initial views the ensemble meets its first data here.
@@ -343,8 +341,7 @@ class Run:
                 "poses": [self.source.candidates[int(i)].to_world.tolist() for i in picks],
                 "scores": None if scores is None else [float(s) for s in scores],
                 "select_seconds": round(t_select, 4), "train_seconds": round(time.perf_counter() - t1, 4)})
-            self._save_ensemble()
-            self._save_record()
+            self._save_round()
             bar.update(len(picks))
         bar.close()
         self._write_outputs()

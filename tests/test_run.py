@@ -122,7 +122,8 @@ def test_rfe_prefers_the_unseen_side(sphere_xml, tmp_path):
 def test_plan_cli_bad_inputs(spot_xml, tmp_path):
     runner = CliRunner()
     for args, needle in ([["--planner", "oracle"], "unknown planner"], [["--budget", "11"], "larger than"],
-                         [["--resolution", "0"], "resolution"], [["--eval-views", "a,b"], "eval-views"]):
+                         [["--resolution", "0"], "resolution"], [["--eval-views", "a,b"], "eval-views"],
+                         [["--ensemble", "1", "--budget", "5"], "at least 2 members"]):
         res = runner.invoke(main, ["plan", str(spot_xml), "--candidates", "10", "--out", str(tmp_path / "o"),
                                    *args])
         assert res.exit_code == 2 and needle in res.output and "Traceback" not in res.output, res.output

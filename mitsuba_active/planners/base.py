@@ -35,6 +35,14 @@ class Planner:
 
     name = "planner"
     needs_ensemble = False
+    #: Fewest ensemble members the planner can work with.
+    min_members = 1
+
+    def check_ensemble_size(self, n_members: int) -> None:
+        """UserError when an ensemble of ``n_members`` is too small for this planner."""
+        if self.needs_ensemble and n_members < self.min_members:
+            raise UserError(f"the {self.name} planner needs an ensemble of at least {self.min_members} members "
+                            f"(--ensemble {self.min_members} or more)")
 
     def select(self, state: PlanningState, batch: int) -> tuple[list[int], np.ndarray | None]:
         """Return ``batch`` candidate indices and the per-candidate scores (C,) they were chosen by, or None."""

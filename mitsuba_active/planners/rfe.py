@@ -41,6 +41,7 @@ class RFEPlanner(Planner):
 
     name = "rfe"
     needs_ensemble = True
+    min_members = 2  # variance across members needs two of them
 
     def __init__(self, form: str = "sum"):
         rfe_scores(np.zeros((1, 1, 3)), form)  # validate early
@@ -50,8 +51,7 @@ class RFEPlanner(Planner):
         return {"form": self.form}
 
     def select(self, state: PlanningState, batch: int):
-        if state.ensemble is None or state.ensemble.n_members < 2:
-            raise UserError("the rfe planner needs an ensemble of at least 2 members (--ensemble 2 or more)")
+        self.check_ensemble_size(0 if state.ensemble is None else state.ensemble.n_members)
         origins, directions = state.candidate_rays
         c, r = origins.shape[:2]
         pred = state.ensemble.predict(origins.reshape(-1, 3), directions.reshape(-1, 3))

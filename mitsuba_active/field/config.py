@@ -51,8 +51,9 @@ class FieldConfig:
         Stratified samples per ray between the entry and exit of the padded
         box (64 by default). Kernels are compiled for this block size.
     render_batch:
-        Rays per member in one render kernel; inputs are padded to a whole
-        number of batches so compiled kernels are reused.
+        Most rays per member in one render kernel. A call's rays are padded
+        to the next power of two (at least 64) below this, or to a whole
+        number of such batches, so compiled kernels are reused.
 
     Training
     --------

@@ -226,26 +226,33 @@ class Ensemble:
         return losses
 
     # -------------------------------------------------------------- inference
+    def _render_batch(self, n: int) -> int:
+        """Rays per inference batch for a call with ``n`` rays: the next power
+        of two (at least 64), capped at ``render_batch``. Small calls (a
+        planner's 256 rays per candidate) then do not pay for a full batch of
+        padding, and the few distinct sizes keep compiled kernels reused."""
+        return min(int(self.config.render_batch), max(64, 1 << max(0, int(n) - 1).bit_length()))
+
     def _pad(self, origins, directions):
-        """Pad (N,3) rays to a whole number (>= 1) of ``render_batch`` rays so
-        every batch reuses one compiled kernel; returns (o, d, N, N_pad)."""
+        """Pad (N,3) rays to a whole number (>= 1) of batches (see
+        :meth:`_render_batch`); returns (o, d, N, N_pad, B)."""
         o = np.asarray(origins, np.float32).reshape(-1, 3)
         d = np.asarray(directions, np.float32).reshape(-1, 3)
         n = o.shape[0]
         if d.shape[0] != n:
             raise UserError("origins and directions differ in length")
-        B = int(self.config.render_batch)
+        B = self._render_batch(n)
         n_pad = max(B, -(-n // B) * B)
         op = np.zeros((n_pad, 3), np.float32)
         dp = np.zeros((n_pad, 3), np.float32)
         dp[:, 2] = 1.0
         op[:n], dp[:n] = o, d
-        return op, dp, n, n_pad
+        return op, dp, n, n_pad, B
 
     def _render_all(self, origins, directions):
         """Render every ray with every member; numpy (K, N, ...) outputs."""
-        op, dp, n, n_pad = self._pad(origins, directions)
-        K, B = self.n_members, int(self.config.render_batch)
+        op, dp, n, n_pad, B = self._pad(origins, directions)
+        K = self.n_members
         rgb = np.empty((K, n_pad, 3), np.float32)
         dist = np.empty((K, n_pad), np.float32)
         opac = np.empty((K, n_pad), np.float32)
@@ -303,15 +310,14 @@ class Ensemble:
             (P,) float64.
         """
         self._check_member(member)
-        op, dp, n, n_pad = self._pad(origins, directions)
-        B = int(self.config.render_batch)
+        op, dp, n, n_pad, B = self._pad(origins, directions)
         rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(member),)))
         grid = mi.Float(dr.detach(self._opt["grid"]))
         bg = mi.Float(dr.detach(self._opt["background"]))
         acc = np.zeros(self.n_params, np.float64)
         for _ in range(max(1, int(probes))):
-            v = rng.choice(np.float32([-1.0, 1.0]), size=(n_pad, 3))
-            v[n:] = 0.0  # padding rays do not count
+            v = np.zeros((n_pad, 3), np.float32)  # padding rays do not count
+            v[:n] = rng.choice(np.float32([-1.0, 1.0]), size=(n, 3))
             dr.enable_grad(grid, bg)
             params = self.params()
             params.grid, params.background = grid, bg

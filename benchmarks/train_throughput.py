@@ -14,6 +14,15 @@ Usage::
 ``--memory-steps N`` additionally trains K=1 for N steps and records the
 resident set size (RSS) every 100 steps; the drift is (last - first)/first
 after a 100-step warm-up.
+
+Two diagnostics explain how the step time grows with K:
+
+- ``phases``: forward (batch, lookups, compositing, loss), backward and Adam
+  timed separately, with a synchronisation after each (so they add up to
+  a little more than a normal step);
+- ``lookups``: one kernel of ``batch_rays * n_samples * 8 * n_levels``
+  trilinear-corner lookups into a table of the default size, reading each
+  member's 4 floats (K*4 adjacent floats per lookup), without any other work.
 """
 
 from __future__ import annotations
@@ -30,6 +39,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import mitsuba_active  # noqa: E402,F401  (variant + LLVM first)
+import drjit as dr  # noqa: E402
+import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
 from mitsuba_active.field import Ensemble, FieldConfig  # noqa: E402
@@ -85,6 +96,67 @@ def time_steps(ks, rays, cfg, steps, repeats, warmup):
     return times
 
 
+def phase_times(ks, rays, cfg, steps, warmup):
+    """Median ms of the forward, backward and Adam phases of a step, per K."""
+    ens = {}
+    for k in ks:
+        ens[k] = Ensemble([-0.7] * 3, [0.7] * 3, n_members=k, config=cfg, seed=0)
+        ens[k].set_rays(*rays)
+        ens[k].train(warmup)
+    times = {k: {"forward": [], "backward": [], "adam": []} for k in ks}
+    for _ in range(steps):
+        for k, e in ens.items():
+            t0 = time.perf_counter()
+            _, loss = e.training_loss()
+            dr.eval(loss)
+            dr.sync_thread()
+            t1 = time.perf_counter()
+            dr.backward(loss)
+            dr.eval(dr.grad(e.params().grid))
+            dr.sync_thread()
+            t2 = time.perf_counter()
+            e.optimizer_step()
+            dr.eval(e.params().grid)
+            dr.sync_thread()
+            t3 = time.perf_counter()
+            for name, dt in (("forward", t1 - t0), ("backward", t2 - t1), ("adam", t3 - t2)):
+                times[k][name].append(dt)
+    return {str(k): {name: 1e3 * statistics.median(v) for name, v in t.items()}
+            for k, t in times.items()}
+
+
+def lookup_times(ks, cfg, repeats=7):
+    """Median ms of a kernel doing only the grid lookups of one training step.
+
+    Each of the ``batch_rays * n_samples`` lanes makes ``8 * n_levels``
+    lookups at pseudo-random table entries and reads K*4 adjacent floats
+    (every member's density and colour) per lookup, as the member-interleaved
+    table does.
+    """
+    from mitsuba_active.field.grid import GridLayout
+
+    n_lanes = cfg.batch_rays * cfg.n_samples
+    entries = GridLayout.from_config(cfg).n_entries
+    XF = type(mi.ArrayXf())
+    out = {}
+    for k in ks:
+        table = mi.Float(np.random.default_rng(0).normal(size=entries * k * 4).astype(np.float32))
+        lane = dr.arange(mi.UInt32, n_lanes)
+        times = []
+        for _ in range(repeats):
+            acc = [mi.Float(0.0)] * (4 * k)
+            for c in range(8 * cfg.n_levels):
+                idx = (lane * ((c * 2654435761 + 1) & 0xFFFFFFF)) % entries
+                v = dr.gather(XF, table, idx, True, shape=(4 * k, n_lanes))
+                acc = [a + v[i] for i, a in enumerate(acc)]
+            t0 = time.perf_counter()
+            dr.eval(acc)
+            dr.sync_thread()
+            times.append(time.perf_counter() - t0)
+        out[str(k)] = 1e3 * statistics.median(times[2:])
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=20, help="timed steps per repeat")
@@ -121,6 +193,15 @@ def main(argv=None):
         ratio = result["members"]["4"]["step_ms_median"] / result["members"]["1"]["step_ms_median"]
         result["k4_over_k1_step_time"] = ratio
         print(f"K=4 / K=1 step time: {ratio:.2f}")
+
+    phases = phase_times(args.members, rays, cfg, args.steps, args.warmup)
+    lookups = lookup_times(args.members, cfg)
+    result["phases_ms"] = phases
+    result["lookups_ms"] = lookups
+    for k in args.members:
+        p = phases[str(k)]
+        print(f"K={k}: forward {p['forward']:.1f} ms, backward {p['backward']:.1f} ms, "
+              f"Adam {p['adam']:.1f} ms; lookups alone {lookups[str(k)]:.1f} ms")
 
     if args.memory_steps > 0:
         ens = Ensemble([-0.7] * 3, [0.7] * 3, n_members=1, config=cfg, seed=0)

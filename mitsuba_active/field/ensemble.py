@@ -166,6 +166,48 @@ class Ensemble:
         jitter = uniform_from_u32(hash_u32(hash_u32(dr.arange(mi.UInt32, N * S)) ^ key2))
         return idx, jitter
 
+    def training_loss(self):
+        """Trace (do not evaluate) the loss of the next training step.
+
+        Returns:
+            (mse, loss): ``mi.Float`` scalars; ``mse`` is the photometric
+            squared error summed over members (divide by K for the mean),
+            ``loss`` adds the distance term. Call ``dr.backward(loss)`` and
+            :meth:`optimizer_step` to take the step (what :meth:`train` does).
+        """
+        if self._rays is None:
+            raise UserError("train: call set_rays() first")
+        cfg = self.config
+        N = int(cfg.batch_rays)
+        idx, jitter = self._batch(self._step)
+        R = self._rays
+        o = dr.gather(mi.Point3f, R["o"], idx)
+        d = dr.gather(mi.Vector3f, R["d"], idx)
+        target = dr.gather(mi.Color3f, R["rgb"], idx)
+        outs = render_members(self.params(), o, d, jitter)
+        # Sum of the members' mean losses: each member gets the gradient
+        # it would get if trained alone.
+        sq = 0.0
+        for out in outs:
+            sq = sq + dr.squared_norm(out["rgb"] - target)
+        mse = dr.sum(sq) * (1.0 / (N * 3))
+        loss = mse
+        dw = float(cfg.distance_weight)
+        if dw > 0:
+            inv_diag2 = 1.0 / float(np.sum(np.subtract(self.box_max, self.box_min) ** 2))
+            hit = dr.gather(mi.Bool, R["hit"], idx)
+            dt = dr.gather(mi.Float, R["distance"], idx)
+            dsq = 0.0
+            for out in outs:
+                dsq = dsq + dr.square(dr.select(hit, out["distance"] - dt, 0.0))
+            loss = loss + dw * inv_diag2 / N * dr.sum(dsq)
+        return mse, loss
+
+    def optimizer_step(self):
+        """Apply one Adam update from the accumulated gradients."""
+        self._opt.step()
+        self._step += 1
+
     def train(self, steps: int, progress: bool = False) -> np.ndarray:
         """Run ``steps`` Adam steps on all members; returns (steps,) float64
         photometric MSE averaged over members (per step, before the update).
@@ -175,8 +217,7 @@ class Ensemble:
         """
         if self._rays is None:
             raise UserError("train: call set_rays() first")
-        cfg = self.config
-        K, N = self.n_members, int(cfg.batch_rays)
+        K = self.n_members
         losses = np.zeros(int(steps), np.float64)
         it = range(int(steps))
         bar = None
@@ -185,32 +226,10 @@ class Ensemble:
 
             bar = tqdm(it, desc="field", unit="step")
             it = bar
-        dw = float(cfg.distance_weight)
-        inv_diag2 = 1.0 / float(np.sum(np.subtract(self.box_max, self.box_min) ** 2))
         for j in it:
-            idx, jitter = self._batch(self._step)
-            R = self._rays
-            o = dr.gather(mi.Point3f, R["o"], idx)
-            d = dr.gather(mi.Vector3f, R["d"], idx)
-            target = dr.gather(mi.Color3f, R["rgb"], idx)
-            outs = render_members(self.params(), o, d, jitter)
-            # Sum of the members' mean losses: each member gets the gradient
-            # it would get if trained alone.
-            sq = 0.0
-            for out in outs:
-                sq = sq + dr.squared_norm(out["rgb"] - target)
-            mse = dr.sum(sq) * (1.0 / (N * 3))
-            loss = mse
-            if dw > 0:
-                hit = dr.gather(mi.Bool, R["hit"], idx)
-                dt = dr.gather(mi.Float, R["distance"], idx)
-                dsq = 0.0
-                for out in outs:
-                    dsq = dsq + dr.square(dr.select(hit, out["distance"] - dt, 0.0))
-                loss = loss + dw * inv_diag2 / N * dr.sum(dsq)
+            mse, loss = self.training_loss()
             dr.backward(loss)
-            self._opt.step()
-            self._step += 1
+            self.optimizer_step()
             # One read-back per step (it synchronises): photometric MSE and
             # total loss, the latter to catch a diverging distance term too.
             both = np.array(dr.detach(mi.Vector2f(mse, loss))).ravel()

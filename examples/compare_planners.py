@@ -23,19 +23,19 @@ def main():
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tiny", action="store_true", help="tiny settings (seconds)")
     args = ap.parse_args()
-    tiny, out = args.tiny, Path(args.out)
-    base = dict(scene=args.scene, ensemble=2, seed=args.seed, budget=4 if tiny else 20,
-                initial_views=2, resolution=16 if tiny else 64, candidates=12 if tiny else 100,
-                heldout=3 if tiny else 20, spp=4 if tiny else 64, eval_views=[2, 4] if tiny else [5, 10, 15, 20],
-                initial_steps=20 if tiny else 300, steps_per_view=10 if tiny else 60,
-                eval_steps=30 if tiny else 1500, rays_per_candidate=32 if tiny else 256,
-                field=dict(batch_rays=256, n_samples=16) if tiny else {})
+    out = Path(args.out)
+    # The command line's defaults (as `mitsuba-active plan`), or tiny settings.
+    tiny = dict(budget=4, resolution=16, candidates=12, heldout=3, spp=4, eval_views=[2, 4],
+                initial_steps=20, steps_per_view=10, eval_steps=30, rays_per_candidate=32,
+                field=dict(batch_rays=256, n_samples=16))
+    base = dict(scene=args.scene, seed=args.seed, **(tiny if args.tiny else {}))
+    cfg = RunConfig(planner=args.planners[0], **base)
     # One source for both planners: the same candidates, held-out views and cached ground truth.
-    source = SceneSource.from_xml(args.scene, n_candidates=base["candidates"], n_heldout=base["heldout"],
-                                  resolution=base["resolution"], spp=base["spp"])
+    source = SceneSource.from_xml(args.scene, n_candidates=cfg.candidates, n_heldout=cfg.heldout,
+                                  resolution=cfg.resolution, spp=cfg.spp)
     series = {}
     for name in args.planners:
-        record = Run(source, RunConfig(planner=name, **base), out / name, progress=not tiny).execute()
+        record = Run(source, RunConfig(planner=name, **base), out / name, progress=not args.tiny).execute()
         series[name] = record["metrics"]
         print(name, " ".join(f"{m['views']}v:{m['psnr']:.2f}dB" for m in record["metrics"]))
     plots = plot_metrics(series, out, title=f"{Path(args.scene).stem}: {' vs '.join(args.planners)}")

@@ -304,7 +304,7 @@ class Run:
         if self.planner.needs_ensemble:
             state.candidate_rays = sparse_candidate_rays(self.source.candidates, cfg.rays_per_candidate,
                                                          cfg.seed + 1)
-            self.ensemble = make_ensemble(self.source, cfg, cfg.ensemble, cfg.seed)
+            self.ensemble = make_ensemble(self.source, cfg, self.planner.ensemble_size(cfg.ensemble), cfg.seed)
             ens_file = self.record.get("ensemble_file")
             if resumed and ens_file and (self.out / ens_file).is_file():
                 from .field import Ensemble
@@ -386,7 +386,7 @@ class Run:
             write_png(f"{stem}_gt.png", gt.rgb)
             write_exr(f"{stem}_pred.exr", {"RGB": srgb_to_linear(pred["rgb"]), "Z": pred["distance"]})
             write_exr(f"{stem}_gt.exr", {"RGB": srgb_to_linear(gt.rgb), "Z": gt.distance})
-            if self.ensemble is not None:
+            if self.ensemble is not None and self.ensemble.n_members > 1:
                 ens_pred = predict_view(self.ensemble, self.source.heldout[i])
                 var = ens_pred["rgb_var"].mean(axis=2)
                 write_exr(f"{stem}_variance.exr", {"RGB": ens_pred["rgb_var"], "Z": ens_pred["distance_var"]})

@@ -191,6 +191,18 @@ def test_training_is_deterministic_under_seed():
     assert not np.allclose(runs[0], runs[2], rtol=1e-4)
 
 
+def test_a_member_trains_the_same_whatever_the_ensemble_size():
+    # What lets a planner that looks at one member train only that one.
+    a = views([[0.0, 0.3, 2.2]], width=16, height=16)
+    params = []
+    for k in (1, 3):
+        ens = Ensemble(*BOX, n_members=k, config=tiny_config(distance_weight=0.5), seed=4)
+        ens.set_rays(*a)
+        ens.train(20)
+        params.append(ens.member_params(0))
+    np.testing.assert_allclose(params[0], params[1], rtol=1e-4, atol=1e-6)
+
+
 def test_save_load_renders_identically(tmp_path):
     a = views([[0.0, 0.3, 2.2]], width=16, height=16)
     ens = Ensemble(*BOX, n_members=2, config=tiny_config(), seed=1)

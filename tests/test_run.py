@@ -50,6 +50,16 @@ def test_run_writes_its_outputs(source, tmp_path):
     assert not [p for p in out.rglob(".*")]  # no temporary files left
 
 
+def test_fisher_trains_only_the_member_it_scores(source, tmp_path):
+    from mitsuba_active.field import Ensemble
+
+    rec = _run(source, tmp_path / "f", planner="fisher", ensemble=2)
+    assert rec["finished"] and len(rec["captured"]) == 4
+    assert Ensemble.load(str(tmp_path / "f" / rec["ensemble_file"])).n_members == 1
+    # One field has no spread across members: no variance images.
+    assert not list((tmp_path / "f" / "heldout").glob("*_variance.*"))
+
+
 def test_interrupted_run_resumes_without_redoing_rounds(source, tmp_path, monkeypatch):
     from mitsuba_active.planners.simple import EvenPlanner
 

@@ -17,7 +17,7 @@ key                    dtype / shape     meaning
                                          concatenated in order, dense levels
                                          x-fastest, hashed levels by hash slot
 ``background``         float32 (K,3)     background colour logits (sigmoid -> RGB)
-``adam_t``             int64 ()          Adam step count (optional, for warm start)
+``adam_t``             int64 ()          Adam step count (always written; optional on read, for warm start)
 ``adam_{m,v}_grid``    float32 (E*K*4,)  Adam moments of ``grid`` in the in-memory
                                          member-interleaved order [entry][member]
                                          [channel] (optional)
@@ -44,7 +44,7 @@ KIND = "mitsuba_active.field.Ensemble"
 
 
 def save_ensemble(ens, path) -> Path:
-    """Write ``ens`` to ``path`` (a ``.npz`` suffix is added by numpy if missing)."""
+    """Write ``ens`` to ``path`` (used as given: no suffix is added)."""
     path = Path(path)
     K = ens.n_members
     arrays = dict(

@@ -37,6 +37,12 @@ class Planner:
     needs_ensemble = False
     #: Fewest ensemble members the planner can work with.
     min_members = 1
+    #: Most members the planner looks at (None: all); a run trains no more.
+    max_members = None
+
+    def ensemble_size(self, requested: int) -> int:
+        """Members to train for a requested ensemble size (``--ensemble``)."""
+        return requested if self.max_members is None else min(requested, self.max_members)
 
     def check_ensemble_size(self, n_members: int) -> None:
         """UserError when an ensemble of ``n_members`` is too small for this planner."""

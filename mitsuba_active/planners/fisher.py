@@ -48,10 +48,13 @@ def greedy_fisher(h_candidates: np.ndarray, h_train: np.ndarray, allowed: np.nda
 
 @register
 class FisherPlanner(Planner):
-    """FisherRF-style planner on ensemble member 0 (any ensemble size works)."""
+    """FisherRF-style planner on one field (ensemble member 0; the run trains only that one)."""
 
     name = "fisher"
     needs_ensemble = True
+    # Member 0 alone is scored, and a member trains the same whatever the
+    # ensemble size (see Ensemble), so the others would be wasted work.
+    max_members = 1
 
     def __init__(self, lam: float = 0.1, probes: int = 2):
         self.lam, self.probes = float(lam), int(probes)

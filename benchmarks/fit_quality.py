@@ -13,7 +13,10 @@ Trains one ensemble (``--members``, default 1) and evaluates every
 Usage::
 
     PYTHONPATH=. python benchmarks/fit_quality.py [--seconds 60]
-        [--out benchmarks/results/fit_quality.json]
+        [--set OPTION=VALUE ...] [--out benchmarks/results/fit_quality.json]
+
+``--set`` changes any other :class:`FieldConfig` option, e.g. empty-space
+skipping: ``--set empty_weight=1 --set occupancy_resolution=64``.
 """
 
 from __future__ import annotations
@@ -74,6 +77,8 @@ def main(argv=None):
                     help="FieldConfig.distance_weight (the library default is 0)")
     ap.add_argument("--lr", type=float, default=FieldConfig.lr)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
+                    help="any other FieldConfig option, e.g. --set occupancy_resolution=64 (repeatable)")
     ap.add_argument("--out", default="benchmarks/results/fit_quality.json")
     args = ap.parse_args(argv)
 
@@ -89,7 +94,11 @@ def main(argv=None):
         gt_s = time.perf_counter() - t0
         bbox_min, bbox_max = scene.bbox_min, scene.bbox_max
 
-    cfg = FieldConfig(distance_weight=args.distance_weight, lr=args.lr)
+    extra = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        extra[key] = type(getattr(FieldConfig, key))(value) if hasattr(FieldConfig, key) else value
+    cfg = FieldConfig(distance_weight=args.distance_weight, lr=args.lr, **extra)
     ens = Ensemble(bbox_min, bbox_max, n_members=args.members, config=cfg, seed=args.seed)
     ens.set_rays(*train)
     curve = []
@@ -102,11 +111,14 @@ def main(argv=None):
         steps += chunk
         if trained >= next_eval or trained >= args.seconds:
             m = evaluate(ens, test)
-            m.update(seconds=trained, steps=steps, train_mse=float(losses[-1]))
+            occ = ens.occupancy()
+            m.update(seconds=trained, steps=steps, train_mse=float(losses[-1]),
+                     occupied=None if occ is None else float(occ.mean()))
             curve.append(m)
             print(f"{trained:6.1f} s  {steps:5d} steps  PSNR {m['psnr']:.2f} dB  "
                   f"dist err {100 * m['dist_rel_err']:.2f}% (median "
-                  f"{100 * m['dist_rel_err_median']:.2f}%)", flush=True)
+                  f"{100 * m['dist_rel_err_median']:.2f}%)"
+                  + ("" if occ is None else f"  occupied {100 * occ.mean():.0f}%"), flush=True)
             next_eval += args.eval_every
     final = curve[-1]
     result = dict(mesh=args.mesh, resolution=args.res, train_views=args.train_views,

@@ -67,6 +67,25 @@ class FieldConfig:
     distance_weight:
         Weight of the distance loss (mean over the batch of ``hit *
         (d_pred - d_true)**2 / diag**2``); 0 disables it.
+    empty_weight:
+        Weight of the empty-ray loss (mean over the batch of ``(1 - hit) *
+        opacity**2``): rays that hit nothing should reach the background.
+        Without it a field may paint the background as fog at the far side
+        of the box, which also leaves no empty space to skip; 0 disables it.
+
+    Empty-space skipping (see :mod:`mitsuba_active.field.occupancy`)
+    ------------------------------------------------------------------
+    occupancy_resolution:
+        Cells per axis of the occupancy grid; 0 (the default) turns skipping
+        off. 32-64 suits objects in their box.
+    occupancy_threshold:
+        A cell is skipped while every member's opacity over one sample step
+        there stays below this.
+    occupancy_interval:
+        Training steps between refreshes of the grid.
+    occupancy_warmup:
+        Training steps without skipping after the rays are set (or
+        replaced), before the first refresh.
     """
 
     n_levels: int = 4
@@ -86,6 +105,11 @@ class FieldConfig:
     beta_2: float = 0.99
     epsilon: float = 1e-8
     distance_weight: float = 0.0
+    empty_weight: float = 0.0
+    occupancy_resolution: int = 0
+    occupancy_threshold: float = 0.01
+    occupancy_interval: int = 16
+    occupancy_warmup: int = 64
 
     def __post_init__(self):
         from ..errors import UserError
@@ -98,6 +122,12 @@ class FieldConfig:
                 raise UserError(f"FieldConfig.{name} must be >= 1")
         if not 1 <= self.log2_table_size <= 26:
             raise UserError("FieldConfig.log2_table_size must be in [1, 26]")
+        if not 0 <= int(self.occupancy_resolution) <= 256:
+            raise UserError("FieldConfig.occupancy_resolution must be in [0, 256] (0: off)")
+        if not self.occupancy_threshold > 0 or int(self.occupancy_interval) < 1 \
+                or int(self.occupancy_warmup) < 0:
+            raise UserError("FieldConfig: occupancy_threshold must be > 0, occupancy_interval >= 1 "
+                            "and occupancy_warmup >= 0")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -24,6 +24,7 @@ import numpy as np
 from ..errors import UserError
 from .config import FieldConfig
 from .grid import GridLayout, init_grid
+from .occupancy import DECAY, cell_opacity
 from .render import FieldParams, hash_u32, render_flat, render_members, uniform_from_u32
 
 
@@ -67,6 +68,7 @@ class Ensemble:
         self._step = 0
         self._n_rays = 0
         self._rays = None
+        self._reset_occupancy()
 
     # ------------------------------------------------------------------ state
     def _make_optimizer(self, grid, bg, adam_state=None):
@@ -90,7 +92,8 @@ class Ensemble:
                            layout=self.layout, box_min=self.box_min, box_max=self.box_max,
                            n_samples=int(self.config.n_samples),
                            density_bias=float(self.config.density_bias),
-                           n_members=self.n_members)
+                           n_members=self.n_members, occupancy=self._occupied,
+                           occupancy_resolution=int(self.config.occupancy_resolution))
 
     @property
     def n_params(self) -> int:
@@ -144,6 +147,37 @@ class Ensemble:
                           distance=mi.Float(dist), hit=mi.Bool(h))
         dr.eval(self._rays)
         self._n_rays = m
+        # New rays may show surfaces where earlier ones saw empty space.
+        self._reset_occupancy()
+
+    # -------------------------------------------------------------- occupancy
+    def _reset_occupancy(self):
+        """No skipping until the warm-up is over (see :mod:`.occupancy`)."""
+        self._occupancy = None  # decaying max of cell opacities (mi.Float G^3)
+        self._occupied = None  # occupancy > threshold (mi.Bool G^3)
+        self._occupancy_age = 0  # training steps since the reset
+
+    def _refresh_occupancy(self):
+        """Fold the current fields' cell opacities into the grid."""
+        cfg = self.config
+        key = dr.opaque(mi.UInt32, (self.seed * 0x2545F491 + self._step * 0x9E3779B9) & 0xFFFFFFFF)
+        value = cell_opacity(self.params(), cfg.occupancy_resolution, key)
+        if self._occupancy is not None:
+            value = dr.maximum(value, self._occupancy * DECAY)
+        self._set_occupancy(value)
+
+    def _set_occupancy(self, value):
+        self._occupancy = mi.Float(value)
+        self._occupied = self._occupancy > float(self.config.occupancy_threshold)
+        dr.eval(self._occupancy, self._occupied)
+
+    def occupancy(self) -> np.ndarray | None:
+        """Occupied cells as a bool (G, G, G) array indexed [z, y, x], or None
+        while nothing is skipped (skipping off, or still warming up)."""
+        if self._occupied is None:
+            return None
+        G = int(self.config.occupancy_resolution)
+        return np.array(self._occupied, dtype=bool).reshape(G, G, G)
 
     # --------------------------------------------------------------- training
     def _batch(self, step: int):
@@ -192,10 +226,17 @@ class Ensemble:
             sq = sq + dr.squared_norm(out["rgb"] - target)
         mse = dr.sum(sq) * (1.0 / (N * 3))
         loss = mse
-        dw = float(cfg.distance_weight)
+        dw, ew = float(cfg.distance_weight), float(cfg.empty_weight)
+        hit = dr.gather(mi.Bool, R["hit"], idx) if dw > 0 or ew > 0 else None
+        if ew > 0:
+            # Rays that hit nothing should see the background colour, not
+            # fog painted in front of it.
+            esq = 0.0
+            for out in outs:
+                esq = esq + dr.select(hit, 0.0, dr.square(out["opacity"]))
+            loss = loss + ew / N * dr.sum(esq)
         if dw > 0:
             inv_diag2 = 1.0 / float(np.sum(np.subtract(self.box_max, self.box_min) ** 2))
-            hit = dr.gather(mi.Bool, R["hit"], idx)
             dt = dr.gather(mi.Float, R["distance"], idx)
             dsq = 0.0
             for out in outs:
@@ -204,9 +245,16 @@ class Ensemble:
         return mse, loss
 
     def optimizer_step(self):
-        """Apply one Adam update from the accumulated gradients."""
+        """Apply one Adam update from the accumulated gradients (and refresh
+        the occupancy grid when one is due)."""
         self._opt.step()
         self._step += 1
+        cfg = self.config
+        if cfg.occupancy_resolution > 0:
+            self._occupancy_age += 1
+            since = self._occupancy_age - int(cfg.occupancy_warmup)
+            if since >= 0 and since % int(cfg.occupancy_interval) == 0:
+                self._refresh_occupancy()
 
     def train(self, steps: int, progress: bool = False) -> np.ndarray:
         """Run ``steps`` Adam steps on all members; returns (steps,) float64

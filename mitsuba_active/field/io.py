@@ -22,6 +22,9 @@ key                    dtype / shape     meaning
                                          member-interleaved order [entry][member]
                                          [channel] (optional)
 ``adam_{m,v}_background`` float32 (K*3,) Adam moments of ``background`` (optional)
+``occupancy``          float32 (G,G,G)   decaying max of cell opacities, [z,y,x]
+                                         (only with empty-space skipping active)
+``occupancy_age``      int64 ()          steps since the grid was reset (idem)
 =====================  ================  ==========================================
 
 Training rays are not stored (call ``set_rays`` again after loading).
@@ -65,6 +68,10 @@ def save_ensemble(ens, path) -> Path:
         _, m, v, _ = st[key][3]
         arrays[f"adam_m_{key}"] = np.array(m, np.float32)
         arrays[f"adam_v_{key}"] = np.array(v, np.float32)
+    if ens._occupancy is not None:
+        G = int(ens.config.occupancy_resolution)
+        arrays["occupancy"] = np.array(ens._occupancy, np.float32).reshape(G, G, G)
+        arrays["occupancy_age"] = np.int64(ens._occupancy_age)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "wb") as f:
         np.savez(f, **arrays)
@@ -97,5 +104,11 @@ def load_ensemble(cls, path):
                     for key in ("grid", "background")}
         ens._make_optimizer(grid, z["background"], adam)
         ens._step = int(z["step"])
+        if "occupancy" in z:
+            G = int(cfg.occupancy_resolution)
+            if z["occupancy"].shape != (G, G, G):
+                raise UserError(f"{path}: occupancy shape {z['occupancy'].shape} does not match its config")
+            ens._set_occupancy(z["occupancy"].ravel())
+            ens._occupancy_age = int(z["occupancy_age"])
     dr.eval(ens._opt["grid"], ens._opt["background"])
     return ens

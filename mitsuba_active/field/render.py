@@ -25,6 +25,7 @@ import mitsuba as mi
 import numpy as np
 
 from .grid import GridLayout, query
+from .occupancy import occupied
 
 
 @dataclass
@@ -40,6 +41,9 @@ class FieldParams:
         n_samples: samples per ray.
         density_bias: added to the density logit.
         n_members: K.
+        occupancy: ``mi.Bool`` of ``occupancy_resolution**3`` cells, or None
+            (no empty-space skipping; see :mod:`.occupancy`).
+        occupancy_resolution: cells per axis of ``occupancy``.
     """
 
     grid: object
@@ -50,6 +54,8 @@ class FieldParams:
     n_samples: int
     density_bias: float
     n_members: int = 1
+    occupancy: object = None
+    occupancy_resolution: int = 0
 
     @property
     def diag(self) -> float:
@@ -166,6 +172,40 @@ def composite(tau, rgb_s, t, S: int):
     return w, mi.Color3f(red[0], red[1], red[2]), red[3], opac
 
 
+def lookup_samples(params: FieldParams, s: dict, member=None):
+    """Summed grid features of the samples ``s`` (see :func:`.grid.query`).
+
+    With an occupancy grid, samples in empty cells are dropped from
+    ``s["valid"]`` and only the others are looked up: they are compacted
+    (``dr.compress``), queried, and scattered back, so the cost follows
+    the occupied samples rather than all ``R*S``. Dropped samples read 0.
+
+    Args:
+        member: None (all members: returns a list of K ``mi.Vector4f``),
+            an int, or a per-sample ``mi.UInt32``.
+    """
+    if params.occupancy is None:
+        return query(params.grid, params.layout, params.n_members, s["u"], member, s["valid"])
+    s["valid"] = s["valid"] & occupied(params.occupancy, params.occupancy_resolution, s["u"])
+    n = dr.width(s["valid"])
+    ids = dr.compress(s["valid"])
+    n_members = params.n_members if member is None else 1
+    if dr.width(ids) == 0:
+        zero = dr.zeros(mi.Vector4f, n)
+        return [zero] * n_members if member is None else zero
+    u = dr.gather(mi.Point3f, s["u"], ids)
+    if member is not None and not isinstance(member, int) and dr.width(member) > 1:
+        member = dr.gather(mi.UInt32, member, ids)
+    raw = query(params.grid, params.layout, params.n_members, u, member, True)
+
+    def expand(r):
+        full = dr.zeros(mi.Vector4f, n)
+        dr.scatter(full, r, ids)
+        return full
+
+    return [expand(r) for r in raw] if member is None else expand(raw)
+
+
 def _shade(params: FieldParams, s: dict, raw, member, return_weights=False):
     """Composite one member's evaluated raw features (see render_flat)."""
     S = int(params.n_samples)
@@ -198,7 +238,7 @@ def render_flat(params: FieldParams, o, d, member, jitter=None, return_weights=F
     s = sample_along_rays(o, d, params, jitter)
     mem = mi.UInt32(member)
     m = dr.gather(mi.UInt32, mem, s["ray"]) if dr.width(mem) > 1 else mem
-    raw = query(params.grid, params.layout, params.n_members, s["u"], m, s["valid"])
+    raw = lookup_samples(params, s, m)
     # Evaluate the grid lookups (and the sample distances) once, in one
     # kernel: otherwise every blocked reduction below and every backward
     # kernel would re-trace and re-run the 8 * n_levels gathers.
@@ -217,7 +257,7 @@ def render_members(params: FieldParams, o, d, jitter=None, return_weights=False)
         list of K dicts as returned by :func:`render_flat`.
     """
     s = sample_along_rays(o, d, params, jitter)
-    raws = query(params.grid, params.layout, params.n_members, s["u"], None, s["valid"])
+    raws = lookup_samples(params, s)
     dr.eval(raws, s["t"], s["delta"])  # one gather kernel for all members
     return [_shade(params, s, raw, k, return_weights) for k, raw in enumerate(raws)]
 

@@ -299,8 +299,16 @@ def _fmt(s: dict) -> str:
 
 def _table(summary: dict, scenes, planners, metric: str, title: str):
     cells = {(c["scene"], c["planner"]): c for c in summary["cells"]}
+    empty = {"iqm": None, "se": None, "n": 0}
+    stats = {(s, p, v): cells[(s, p)][f"{metric}@{v}"] if (s, p) in cells else empty
+             for s in scenes for p in planners for v in TABLE_VIEWS}
+    counts = {st["n"] for st in stats.values() if st["n"]}
+    # One seed count for the whole table, or each cell's own when they differ
+    # (a suite still running).
+    per_cell = len(counts) > 1
+    seeds = "seeds (n per cell)" if per_cell else f"{max(counts, default=0)} seeds"
     head = ["planner"] + [f"{s} @{v}" for s in scenes for v in TABLE_VIEWS] + ["wall time (s)"]
-    lines = [f"## {title}", "", "Interquartile mean ± standard error over seeds, at "
+    lines = [f"## {title}", "", f"Interquartile mean ± standard error over {seeds}, at "
              + " and ".join(map(str, TABLE_VIEWS)) + " views captured.", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     csv_rows = [["planner", "scene", "views", "iqm", "se", "n"]]
@@ -309,8 +317,8 @@ def _table(summary: dict, scenes, planners, metric: str, title: str):
         for s in scenes:
             c = cells.get((s, p))
             for v in TABLE_VIEWS:
-                st = c[f"{metric}@{v}"] if c else {"iqm": None, "se": None, "n": 0}
-                row.append(_fmt(st))
+                st = stats[(s, p, v)]
+                row.append(f"{_fmt(st)} ({st['n']})" if per_cell and st["iqm"] is not None else _fmt(st))
                 csv_rows.append([p, s, v, st["iqm"], st["se"], st["n"]])
             if c and c["wall_seconds"]["iqm"] is not None:
                 walls.append(c["wall_seconds"]["iqm"])

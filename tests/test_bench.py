@@ -27,6 +27,22 @@ def test_image_metrics():
     assert distance_error(d * 1.1, d, m) == pytest.approx(10.0)
 
 
+def test_tables_state_the_seed_count_and_mark_cells_with_fewer_seeds():
+    from mitsuba_active.bench import _table
+
+    def cell(planner, n):
+        st = {"iqm": 20.0 + n, "se": 0.1, "n": n}
+        return {"scene": "a", "planner": planner, "seeds": n, "wall_seconds": st,
+                **{f"psnr@{v}": st for v in (10, 20)}}
+
+    even = {"cells": [cell("rfe", 3), cell("even", 3)]}
+    md, rows = _table(even, ["a"], ["rfe", "even"], "psnr", "PSNR")
+    assert "over 3 seeds" in md and "(3)" not in md and rows[1] == ["rfe", "a", 10, 23.0, 0.1, 3]
+    uneven = {"cells": [cell("rfe", 3), cell("even", 2)]}
+    md, _ = _table(uneven, ["a"], ["rfe", "even"], "psnr", "PSNR")
+    assert "n per cell" in md and "23.00 ± 0.10 (3)" in md and "22.00 ± 0.10 (2)" in md
+
+
 TINY_SUITE = """
 name = "tiny"
 planners = ["even", "rfe"]

@@ -77,7 +77,8 @@ class FieldConfig:
     ------------------------------------------------------------------
     occupancy_resolution:
         Cells per axis of the occupancy grid; 0 (the default) turns skipping
-        off. 32-64 suits objects in their box.
+        off. 32-64 suits objects in their box, fitted from many views
+        (with few views it cost held-out PSNR; see docs/field.md).
     occupancy_threshold:
         A cell is skipped while every member's opacity over one sample step
         there stays below this.

@@ -206,7 +206,7 @@ class Ensemble:
         Returns:
             (mse, loss): ``mi.Float`` scalars; ``mse`` is the photometric
             squared error summed over members (divide by K for the mean),
-            ``loss`` adds the distance term. Call ``dr.backward(loss)`` and
+            ``loss`` adds the distance and empty-ray terms. Call ``dr.backward(loss)`` and
             :meth:`optimizer_step` to take the step (what :meth:`train` does).
         """
         if self._rays is None:
@@ -263,8 +263,6 @@ class Ensemble:
         Raises:
             UserError: no rays set, or the loss became NaN/inf.
         """
-        if self._rays is None:
-            raise UserError("train: call set_rays() first")
         K = self.n_members
         losses = np.zeros(int(steps), np.float64)
         it = range(int(steps))

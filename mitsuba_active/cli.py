@@ -118,6 +118,24 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
     click.echo(f"wrote {len(cams)} views to {out}")
 
 
+def _parse_options(items) -> dict:
+    """``NAME=VALUE`` strings to a dict; values become int, float or str."""
+    options = {}
+    for item in items:
+        name, sep, text = item.partition("=")
+        if not sep or not name.strip():
+            raise UserError(f"--planner-option takes NAME=VALUE, got '{item}'")
+        value = text.strip()
+        for kind in (int, float):
+            try:
+                value = kind(value)
+                break
+            except ValueError:
+                pass
+        options[name.strip()] = value
+    return options
+
+
 def _parse_counts(text: str) -> list[int]:
     try:
         counts = [int(x) for x in text.split(",") if x.strip()]
@@ -143,6 +161,8 @@ def _parse_counts(text: str) -> list[int]:
               help="Sparse rays scored per candidate view.")
 @click.option("--score", "score_form", type=click.Choice(["sum", "log"]), default="sum", show_default=True,
               help="rfe: sum of variances or sum of log-variances.")
+@click.option("--planner-option", "planner_option", multiple=True, metavar="NAME=VALUE",
+              help="A planner setting, e.g. fisher's lam=0.1 or probes=2 (repeatable).")
 @click.option("--steps-per-view", type=int, default=None,
               help="Ensemble training steps per captured view (warm start) [50].")
 @click.option("--eval-views", default="5,10,15,20", show_default=True, help="View counts to evaluate at.")
@@ -154,8 +174,8 @@ def _parse_counts(text: str) -> list[int]:
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 @_one_line_errors
 def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig, n_candidates, n_heldout,
-         resolution, fov, spp, downscale, rays_per_candidate, score_form, steps_per_view, eval_views, eval_steps,
-         distance_weight, out, quiet):
+         resolution, fov, spp, downscale, rays_per_candidate, score_form, planner_option, steps_per_view, eval_views,
+         eval_steps, distance_weight, out, quiet):
     """Choose views of SCENE_PATH with a planner and report reconstruction quality.
 
     SCENE_PATH is a Mitsuba scene XML, a transforms.json (or a folder holding
@@ -168,6 +188,7 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
 
     scene_path = str(scene_path or BUNDLED_SCENE)
     options = {"form": score_form} if planner == "rfe" else {}
+    options.update(_parse_options(planner_option))
     make_planner(planner, **options)  # unknown planner: fail before any rendering
     cfg = RunConfig(scene=scene_path, planner=planner, planner_options=options, budget=budget,
                     initial_views=initial_views, ensemble=ensemble, batch=batch, seed=seed,

@@ -133,7 +133,10 @@ def test_plan_cli_bad_inputs(spot_xml, tmp_path):
     runner = CliRunner()
     for args, needle in ([["--planner", "oracle"], "unknown planner"], [["--budget", "11"], "larger than"],
                          [["--resolution", "0"], "resolution"], [["--eval-views", "a,b"], "eval-views"],
-                         [["--ensemble", "1", "--budget", "5"], "at least 2 members"]):
+                         [["--ensemble", "1", "--budget", "5"], "at least 2 members"],
+                         [["--planner", "fisher", "--planner-option", "probes=0"], "probes >= 1"],
+                         [["--planner-option", "form"], "NAME=VALUE"],
+                         [["--planner", "even", "--planner-option", "lam=1"], "bad option"]):
         res = runner.invoke(main, ["plan", str(spot_xml), "--candidates", "10", "--out", str(tmp_path / "o"),
                                    *args])
         assert res.exit_code == 2 and needle in res.output and "Traceback" not in res.output, res.output

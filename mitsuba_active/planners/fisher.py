@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import UserError
 from .base import Planner, PlanningState, greedy_top, register, unseen
 
 
@@ -58,6 +59,8 @@ class FisherPlanner(Planner):
 
     def __init__(self, lam: float = 0.1, probes: int = 2):
         self.lam, self.probes = float(lam), int(probes)
+        if not self.lam > 0 or self.probes < 1:
+            raise UserError(f"fisher needs lam > 0 and probes >= 1, got lam={lam}, probes={probes}")
 
     def options(self):
         return {"lam": self.lam, "probes": self.probes}

@@ -173,8 +173,11 @@ def run_job(job: Job, threads: int | None = None) -> dict:
 
 
 def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, planners=None, scenes=None,
-              progress=True, log=print) -> dict:
-    """Run every job of a suite (resuming finished ones) and write the report; returns the summary."""
+              progress=True, log=print, report_only=False) -> dict:
+    """Run every job of a suite (resuming finished ones) and write the report; returns the summary.
+
+    ``report_only`` runs nothing and reports the runs finished so far (safe
+    while another process is still running the suite)."""
     import multiprocessing as mp
     import os
 
@@ -185,6 +188,8 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
     if workers < 1:
         raise UserError(f"--workers must be at least 1, got {workers}")
     jobs = plan_jobs(suite, out_dir, profile, seeds, planners, scenes)
+    if report_only:
+        return write_report(suite, jobs, out_dir / "report", profile)
     threads = max(1, (os.cpu_count() or 1) // workers)
     bar = tqdm(total=len(jobs), desc=f"suite {suite.name}", unit="run", disable=not progress)
     if workers == 1:

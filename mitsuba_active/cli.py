@@ -231,9 +231,11 @@ def export(run_dir, out):
 @click.option("--seeds", default=None, help="Comma-separated seeds [the profile's].")
 @click.option("--planners", default=None, help="Comma-separated planners [the suite's].")
 @click.option("--scenes", default=None, help="Comma-separated scene names [all].")
+@click.option("--report-only", is_flag=True,
+              help="Run nothing: write the tables and plots of the runs finished so far.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @_one_line_errors
-def bench(suite, out, profile, workers, seeds, planners, scenes, quiet):
+def bench(suite, out, profile, workers, seeds, planners, scenes, report_only, quiet):
     """Run a benchmark SUITE (TOML): scenes x planners x seeds; write tables and plots."""
     from .bench import run_suite
 
@@ -243,7 +245,8 @@ def bench(suite, out, profile, workers, seeds, planners, scenes, quiet):
     except ValueError:
         raise UserError(f"--seeds takes comma-separated integers, got '{seeds}'") from None
     out = Path(out) if out else Path("bench") / f"{Path(suite).stem}-{profile}"
-    run_suite(suite, out, profile, workers, seed_list, split(planners), split(scenes), progress=not quiet)
+    run_suite(suite, out, profile, workers, seed_list, split(planners), split(scenes), progress=not quiet,
+              report_only=report_only)
     click.echo(f"tables and plots in {out / 'report'}")
 
 

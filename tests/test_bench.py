@@ -101,6 +101,10 @@ def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
     assert calls == [] and stamps == {p: p.stat().st_mtime_ns for p in out.rglob("run.json")}
     rec = json.loads(next(out.rglob("run.json")).read_text())
     assert rec["finished"] and rec["wall_seconds"] > 0
+    # A report of what is finished, running nothing (seed 1 was never run).
+    summary = run_suite(tiny_suite, out, "quick", seeds=[0, 1], progress=False, report_only=True)
+    assert calls == [] and all(c["seeds"] == 1 for c in summary["cells"])
+    assert not list(out.rglob("*seed1*"))
 
 
 def test_bad_suites(tmp_path):

@@ -45,6 +45,11 @@ PROFILES = {
     "full": dict(seeds=[0, 1, 2, 3, 4], resolution=64, candidates=100, heldout=20, spp=64, ensemble=2),
 }
 TABLE_VIEWS = (10, 20)
+#: Planners that the scene-mean table measures every other planner against.
+BASELINES = ("random", "even")
+#: Metrics of the tables: title, and whether higher values are better.
+METRICS = {"psnr": ("Photometric held-out PSNR (dB)", True),
+           "distance_error": ("Distance error (%)", False)}
 
 
 @dataclass
@@ -253,19 +258,23 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str) 
             recs = data[scene].get(planner, [])
             cell = {"scene": scene, "planner": planner, "seeds": len(recs),
                     "wall_seconds": summarize([r.get("wall_seconds") for r in recs])}
-            for metric in ("psnr", "distance_error"):
+            for metric in METRICS:
                 for v in TABLE_VIEWS:
                     cell[f"{metric}@{v}"] = summarize([metric_at(r, metric, v) for r in recs])
             summary["cells"].append(cell)
     report_dir.mkdir(parents=True, exist_ok=True)
-    with atomic_write(report_dir / "results.json") as tmp:
-        tmp.write_text(json.dumps(summary, indent=1))
-    for metric, title in (("psnr", "Photometric held-out PSNR (dB)"), ("distance_error", "Distance error (%)")):
+    summary["mean_over_scenes"] = {metric: scene_means(summary, scenes, planners, metric) for metric in METRICS}
+    for metric, (title, _) in METRICS.items():
         md, csv_rows = _table(summary, scenes, planners, metric, title)
         with atomic_write(report_dir / f"table_{metric}.md") as tmp:
             tmp.write_text(md)
         with atomic_write(report_dir / f"table_{metric}.csv") as tmp:
             tmp.write_text("\n".join(",".join(map(str, r)) for r in csv_rows) + "\n")
+    with atomic_write(report_dir / "table_mean.md") as tmp:
+        tmp.write_text("\n".join(_mean_table(summary["mean_over_scenes"][m], planners, m, METRICS[m][0])
+                                 for m in METRICS))
+    with atomic_write(report_dir / "results.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=1))
     # Plots: per scene, IQM over seeds with a +-SE band; and one summary over scenes.
     overall: dict = {}
     for scene in scenes:
@@ -330,3 +339,54 @@ def _table(summary: dict, scenes, planners, metric: str, title: str):
         row.append(f"{np.mean(walls):.0f}" if walls else "n/a")
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines) + "\n", csv_rows
+
+
+def scene_means(summary: dict, scenes, planners, metric: str) -> dict:
+    """Each planner over the scenes where every planner has a value at every table view.
+
+    Returns ``{planner: {"scenes": n, "mean@V": mean of the cells' IQMs,
+    "vs_B@V": mean difference to baseline B, "wins_vs_B@V": scenes where the
+    planner is better than B}}`` for each table view V and each baseline of
+    :data:`BASELINES` in the suite (better: higher, or lower for errors).
+    """
+    cells = {(c["scene"], c["planner"]): c for c in summary["cells"]}
+
+    def value(s, p, v):
+        c = cells.get((s, p))
+        return None if c is None else c[f"{metric}@{v}"]["iqm"]
+
+    higher_is_better = METRICS[metric][1]
+    complete = [s for s in scenes if all(value(s, p, v) is not None for p in planners for v in TABLE_VIEWS)]
+    rows = {}
+    for p in planners:
+        row = {"scenes": len(complete)}
+        for v in TABLE_VIEWS:
+            row[f"mean@{v}"] = float(np.mean([value(s, p, v) for s in complete])) if complete else None
+            for b in BASELINES:
+                if b == p or b not in planners or not complete:
+                    continue
+                diff = [value(s, p, v) - value(s, b, v) for s in complete]
+                row[f"vs_{b}@{v}"] = float(np.mean(diff))
+                row[f"wins_vs_{b}@{v}"] = int(sum((d > 0) if higher_is_better else (d < 0) for d in diff))
+        rows[p] = row
+    return rows
+
+
+def _mean_table(means: dict, planners, metric: str, title: str) -> str:
+    """Markdown of :func:`scene_means`: means, and margins over the baselines with scenes won."""
+    n = max((r["scenes"] for r in means.values()), default=0)
+    baselines = [b for b in BASELINES if b in planners]
+    head = ["planner"] + [f"mean @{v}" for v in TABLE_VIEWS] + [f"vs {b} @{v}" for b in baselines for v in TABLE_VIEWS]
+    lines = [f"## {title}: mean over scenes", "",
+             f"Mean over {n} scenes of each cell's interquartile mean; 'vs B': the mean difference to "
+             f"planner B, and in brackets the scenes where the planner does better than B.", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for p in planners:
+        r = means[p]
+        row = [p] + ["n/a" if r[f"mean@{v}"] is None else f"{r[f'mean@{v}']:.2f}" for v in TABLE_VIEWS]
+        for b in baselines:
+            for v in TABLE_VIEWS:
+                key = f"vs_{b}@{v}"
+                row.append(f"{r[key]:+.2f} ({r['wins_' + key]}/{n})" if key in r else "-")
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines) + "\n"

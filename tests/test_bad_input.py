@@ -97,8 +97,12 @@ def test_real_process_exit_code_and_stderr(tmp_path):
     assert not (tmp_path / "o.xml").exists()
 
 
+#: The LLVM checks concern the CPU variant, also where the suite runs under cuda_ad_rgb.
+LLVM_VARIANT = {"MITSUBA_ACTIVE_VARIANT": "llvm_ad_rgb"}
+
+
 def test_missing_llvm_is_one_line_with_the_fix(tmp_path):
-    env = dict(os.environ, DRJIT_LIBLLVM_PATH=str(tmp_path / "libLLVM-nothing.so"))
+    env = dict(os.environ, DRJIT_LIBLLVM_PATH=str(tmp_path / "libLLVM-nothing.so"), **LLVM_VARIANT)
     proc = subprocess.run([sys.executable, "-c", "import mitsuba_active"], capture_output=True, text=True, env=env)
     assert proc.returncode != 0
     assert proc.stderr.strip().count("\n") == 0 and "apt-get install libllvm19" in proc.stderr
@@ -142,6 +146,6 @@ def test_zero_field_of_view(spot_xml, out):
 def test_old_llvm_named_by_the_user_is_refused(tmp_path):
     old = tmp_path / "libLLVM-15.so"
     old.write_bytes(b"")
-    env = dict(os.environ, DRJIT_LIBLLVM_PATH=str(old))
+    env = dict(os.environ, DRJIT_LIBLLVM_PATH=str(old), **LLVM_VARIANT)
     proc = subprocess.run([sys.executable, "-c", "import mitsuba_active"], capture_output=True, text=True, env=env)
     assert proc.returncode != 0 and "LLVM 15" in proc.stderr and "libllvm19" in proc.stderr

@@ -43,6 +43,33 @@ def test_tables_state_the_seed_count_and_mark_cells_with_fewer_seeds():
     assert "n per cell" in md and "23.00 ± 0.10 (3)" in md and "22.00 ± 0.10 (2)" in md
 
 
+def test_scene_means_margins_and_wins_by_hand():
+    from mitsuba_active.bench import _mean_table, scene_means
+
+    def cell(scene, planner, psnr10, psnr20, err):
+        return {"scene": scene, "planner": planner,
+                "psnr@10": {"iqm": psnr10}, "psnr@20": {"iqm": psnr20},
+                "distance_error@10": {"iqm": err}, "distance_error@20": {"iqm": err}}
+
+    summary = {"cells": [cell("a", "random", 20, 24, 5.0), cell("a", "even", 21, 25, 4.0), cell("a", "rfe", 23, 24, 6.0),
+                         cell("b", "random", 30, 34, 3.0), cell("b", "even", 29, 36, 3.5), cell("b", "rfe", 30.5, 37, 2.0),
+                         # A scene without every planner is left out of every mean.
+                         cell("c", "rfe", 99, 99, 0.0)]}
+    planners = ["random", "even", "rfe"]
+    m = scene_means(summary, ["a", "b", "c"], planners, "psnr")
+    assert m["rfe"]["scenes"] == 2
+    assert m["rfe"]["mean@10"] == pytest.approx(26.75) and m["rfe"]["mean@20"] == pytest.approx(30.5)
+    assert m["rfe"]["vs_even@10"] == pytest.approx((2 + 1.5) / 2) and m["rfe"]["wins_vs_even@10"] == 2
+    assert m["rfe"]["vs_even@20"] == pytest.approx((-1 + 1) / 2) and m["rfe"]["wins_vs_even@20"] == 1
+    assert m["rfe"]["vs_random@10"] == pytest.approx(1.75) and m["rfe"]["wins_vs_random@10"] == 2
+    assert "vs_even@10" not in m["even"] and m["even"]["wins_vs_random@10"] == 1
+    # Errors: lower is better, so rfe beats even on scene b only.
+    e = scene_means(summary, ["a", "b", "c"], planners, "distance_error")
+    assert e["rfe"]["vs_even@10"] == pytest.approx((2.0 - 1.5) / 2) and e["rfe"]["wins_vs_even@10"] == 1
+    md = _mean_table(m, planners, "psnr", "PSNR")
+    assert "Mean over 2 scenes" in md and "| rfe | 26.75 | 30.50 | +1.75 (2/2) |" in md
+
+
 TINY_SUITE = """
 name = "tiny"
 planners = ["even", "rfe"]
@@ -90,6 +117,8 @@ def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
     table = (report / "table_psnr.md").read_text()
     assert "| rfe |" in table and "ball @4" in table and "±" in table
     assert (report / "table_distance_error.csv").is_file() and (report / "results.json").is_file()
+    assert "vs even @4" in (report / "table_mean.md").read_text()
+    assert json.loads((report / "results.json").read_text())["mean_over_scenes"]["psnr"]["rfe"]["scenes"] == 2
     assert (report / "plots" / "ball" / "psnr.png").is_file() and (report / "plots" / "summary" / "psnr.png").is_file()
     # Resume: finished runs are skipped, not redone.
     stamps = {p: p.stat().st_mtime_ns for p in out.rglob("run.json")}

@@ -94,11 +94,7 @@ def main(argv=None):
         gt_s = time.perf_counter() - t0
         bbox_min, bbox_max = scene.bbox_min, scene.bbox_max
 
-    extra = {}
-    for item in args.set:
-        key, _, value = item.partition("=")
-        extra[key] = type(getattr(FieldConfig, key))(value) if hasattr(FieldConfig, key) else value
-    cfg = FieldConfig(distance_weight=args.distance_weight, lr=args.lr, **extra)
+    cfg = FieldConfig.from_options(args.set, distance_weight=args.distance_weight, lr=args.lr)
     ens = Ensemble(bbox_min, bbox_max, n_members=args.members, config=cfg, seed=args.seed)
     ens.set_rays(*train)
     curve = []

@@ -22,7 +22,15 @@ Two diagnostics explain how the step time grows with K:
   a little more than a normal step);
 - ``lookups``: one kernel of ``batch_rays * n_samples * 8 * n_levels``
   trilinear-corner lookups into a table of the default size, reading each
-  member's 4 floats (K*4 adjacent floats per lookup), without any other work.
+  member's 4 floats (K*4 adjacent floats per lookup), without any other work;
+- ``grid_only``: a training step without the volume rendering: the grid
+  lookups of a real batch's samples, a loss that is a fixed weighted sum of the
+  looked-up features, its backward pass (the gradient scatter) and Adam. Every
+  renderer pays at least this, so its K=4 / K=1 ratio bounds what fusing the
+  members' compositing can achieve.
+
+``--set OPTION=VALUE`` (repeatable) changes FieldConfig options, e.g. the
+settings that ``plan`` and ``bench`` runs use: ``--set n_levels=2 --set lr=0.01``.
 """
 
 from __future__ import annotations
@@ -125,6 +133,31 @@ def phase_times(ks, rays, cfg, steps, warmup):
             for k, t in times.items()}
 
 
+def grid_only_times(ks, rays, cfg, steps, warmup):
+    """Median ms of a step that only looks up, back-propagates and updates the grid."""
+    from mitsuba_active.field.render import lookup_samples, sample_along_rays
+
+    out = {}
+    for k in ks:
+        e = Ensemble([-0.7] * 3, [0.7] * 3, n_members=k, config=cfg, seed=0)
+        e.set_rays(*rays)
+        times = []
+        for j in range(warmup + steps):
+            t0 = time.perf_counter()
+            idx, jitter = e._batch(j)
+            o = dr.gather(mi.Point3f, e._rays["o"], idx)
+            d = dr.gather(mi.Vector3f, e._rays["d"], idx)
+            raws = lookup_samples(e.params(), sample_along_rays(o, d, e.params(), jitter))
+            loss = dr.sum(sum(r[0] * 0.4 + r[1] * 0.3 + r[2] * 0.2 + r[3] * 0.1 for r in raws))
+            dr.backward(loss)
+            e.optimizer_step()
+            dr.eval(e.params().grid)
+            dr.sync_thread()
+            times.append(time.perf_counter() - t0)
+        out[str(k)] = 1e3 * statistics.median(times[warmup:])
+    return out
+
+
 def lookup_times(ks, cfg, repeats=7):
     """Median ms of a kernel doing only the grid lookups of one training step.
 
@@ -165,10 +198,12 @@ def main(argv=None):
     ap.add_argument("--members", type=int, nargs="+", default=[1, 4])
     ap.add_argument("--memory-steps", type=int, default=0,
                     help="also track RSS over this many K=1 steps (e.g. 2000)")
+    ap.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
+                    help="a FieldConfig option, e.g. --set n_levels=2 (repeatable)")
     ap.add_argument("--out", default="benchmarks/results/train_throughput.json")
     args = ap.parse_args(argv)
 
-    cfg = FieldConfig()  # 4096 rays x 64 samples by default
+    cfg = FieldConfig.from_options(args.set)  # 4096 rays x 64 samples by default
     rays = synthetic_rays()
     result = dict(batch_rays=cfg.batch_rays, n_samples=cfg.n_samples,
                   config=cfg.to_dict(), machine=platform.processor() or platform.machine(),
@@ -196,12 +231,18 @@ def main(argv=None):
 
     phases = phase_times(args.members, rays, cfg, args.steps, args.warmup)
     lookups = lookup_times(args.members, cfg)
+    grid_only = grid_only_times(args.members, rays, cfg, args.steps, args.warmup)
     result["phases_ms"] = phases
     result["lookups_ms"] = lookups
+    result["grid_only_step_ms"] = grid_only
     for k in args.members:
         p = phases[str(k)]
         print(f"K={k}: forward {p['forward']:.1f} ms, backward {p['backward']:.1f} ms, "
-              f"Adam {p['adam']:.1f} ms; lookups alone {lookups[str(k)]:.1f} ms")
+              f"Adam {p['adam']:.1f} ms; lookups alone {lookups[str(k)]:.1f} ms; "
+              f"grid-only step {grid_only[str(k)]:.1f} ms")
+    if "1" in grid_only and "4" in grid_only:
+        result["grid_only_k4_over_k1"] = grid_only["4"] / grid_only["1"]
+        print(f"grid-only step K=4 / K=1: {result['grid_only_k4_over_k1']:.2f}")
 
     if args.memory_steps > 0:
         ens = Ensemble([-0.7] * 3, [0.7] * 3, n_members=1, config=cfg, seed=0)

@@ -279,3 +279,13 @@ def test_render_rays_dr_matches_numpy_render():
     np.testing.assert_allclose(np.array(rgb).T, ref["rgb"][m, idx], atol=1e-5)
     np.testing.assert_allclose(np.array(dist), ref["distance"][m, idx], rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(np.array(opac), ref["opacity"][m, idx], atol=1e-5)
+
+
+def test_config_from_option_strings():
+    cfg = FieldConfig.from_options(["n_levels=2", "lr=0.01", "occupancy_resolution=32"], distance_weight=0.5)
+    assert (cfg.n_levels, cfg.lr, cfg.occupancy_resolution, cfg.distance_weight) == (2, 0.01, 32, 0.5)
+    assert isinstance(cfg.n_levels, int) and isinstance(cfg.lr, float)
+    for bad, message in ((["speed=3"], "OPTION=VALUE"), (["n_levels"], "OPTION=VALUE"),
+                         (["n_levels=two"], "must be of type int"), (["n_levels=0"], ">= 1")):
+        with pytest.raises(UserError, match=message):
+            FieldConfig.from_options(bad)

@@ -134,6 +134,27 @@ class FieldConfig:
         return dataclasses.asdict(self)
 
     @classmethod
+    def from_options(cls, items, **base) -> "FieldConfig":
+        """A config from ``OPTION=VALUE`` strings (typed like the defaults) over ``base``.
+
+        Raises:
+            UserError: an unknown option, or a value of the wrong type.
+        """
+        from ..errors import UserError
+
+        known = {f.name: type(f.default) for f in dataclasses.fields(cls)}
+        options = dict(base)
+        for item in items:
+            key, sep, value = item.partition("=")
+            if not sep or key not in known:
+                raise UserError(f"expected OPTION=VALUE with a FieldConfig option, got '{item}'")
+            try:
+                options[key] = known[key](value)
+            except ValueError:
+                raise UserError(f"FieldConfig.{key} must be of type {known[key].__name__}, got '{value}'") from None
+        return cls(**options)
+
+    @classmethod
     def from_dict(cls, d: dict) -> "FieldConfig":
         known = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in d.items() if k in known})

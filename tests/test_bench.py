@@ -66,7 +66,7 @@ def test_scene_means_margins_and_wins_by_hand():
     # Errors: lower is better, so rfe beats even on scene b only.
     e = scene_means(summary, ["a", "b", "c"], planners, "distance_error")
     assert e["rfe"]["vs_even@10"] == pytest.approx((2.0 - 1.5) / 2) and e["rfe"]["wins_vs_even@10"] == 1
-    md = _mean_table(m, planners, "psnr", "PSNR")
+    md = _mean_table(m, planners, "PSNR")
     assert "Mean over 2 scenes" in md and "| rfe | 26.75 | 30.50 | +1.75 (2/2) |" in md
 
 

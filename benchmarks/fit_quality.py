@@ -34,6 +34,7 @@ import mitsuba_active  # noqa: E402,F401
 import numpy as np  # noqa: E402
 
 from mitsuba_active.cameras import camera_rays, scene_rigs  # noqa: E402
+from mitsuba_active.errors import UserError  # noqa: E402
 from mitsuba_active.field import Ensemble, FieldConfig  # noqa: E402
 from mitsuba_active.groundtruth import GroundTruth  # noqa: E402
 from mitsuba_active.scene import load_scene, scene_from_mesh  # noqa: E402
@@ -81,6 +82,10 @@ def main(argv=None):
                     help="any other FieldConfig option, e.g. --set occupancy_resolution=64 (repeatable)")
     ap.add_argument("--out", default="benchmarks/results/fit_quality.json")
     args = ap.parse_args(argv)
+    try:
+        cfg = FieldConfig.from_options(args.set, distance_weight=args.distance_weight, lr=args.lr)
+    except UserError as exc:
+        ap.error(str(exc))
 
     with tempfile.TemporaryDirectory() as tmp:
         xml = scene_from_mesh(args.mesh, Path(tmp) / "scene.xml")
@@ -94,7 +99,6 @@ def main(argv=None):
         gt_s = time.perf_counter() - t0
         bbox_min, bbox_max = scene.bbox_min, scene.bbox_max
 
-    cfg = FieldConfig.from_options(args.set, distance_weight=args.distance_weight, lr=args.lr)
     ens = Ensemble(bbox_min, bbox_max, n_members=args.members, config=cfg, seed=args.seed)
     ens.set_rays(*train)
     curve = []

@@ -21,7 +21,7 @@ Two diagnostics explain how the step time grows with K:
   timed separately, with a synchronisation after each (so they add up to
   a little more than a normal step);
 - ``lookups``: one kernel of ``batch_rays * n_samples * 8 * n_levels``
-  trilinear-corner lookups into a table of the default size, reading each
+  trilinear-corner lookups into a table of the configured size, reading each
   member's 4 floats (K*4 adjacent floats per lookup), without any other work;
 - ``grid_only``: a training step without the volume rendering: the grid
   lookups of a real batch's samples, a loss that is a fixed weighted sum of the
@@ -51,6 +51,7 @@ import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
+from mitsuba_active.errors import UserError  # noqa: E402
 from mitsuba_active.field import Ensemble, FieldConfig  # noqa: E402
 
 
@@ -134,15 +135,17 @@ def phase_times(ks, rays, cfg, steps, warmup):
 
 
 def grid_only_times(ks, rays, cfg, steps, warmup):
-    """Median ms of a step that only looks up, back-propagates and updates the grid."""
+    """Median ms of a step that only looks up, back-propagates and updates the
+    grid, per K (the K's steps interleaved, as in :func:`time_steps`)."""
     from mitsuba_active.field.render import lookup_samples, sample_along_rays
 
-    out = {}
+    ens = {}
     for k in ks:
-        e = Ensemble([-0.7] * 3, [0.7] * 3, n_members=k, config=cfg, seed=0)
-        e.set_rays(*rays)
-        times = []
-        for j in range(warmup + steps):
+        ens[k] = Ensemble([-0.7] * 3, [0.7] * 3, n_members=k, config=cfg, seed=0)
+        ens[k].set_rays(*rays)
+    times = {k: [] for k in ks}
+    for j in range(warmup + steps):
+        for k, e in ens.items():
             t0 = time.perf_counter()
             idx, jitter = e._batch(j)
             o = dr.gather(mi.Point3f, e._rays["o"], idx)
@@ -153,9 +156,8 @@ def grid_only_times(ks, rays, cfg, steps, warmup):
             e.optimizer_step()
             dr.eval(e.params().grid)
             dr.sync_thread()
-            times.append(time.perf_counter() - t0)
-        out[str(k)] = 1e3 * statistics.median(times[warmup:])
-    return out
+            times[k].append(time.perf_counter() - t0)
+    return {str(k): 1e3 * statistics.median(t[warmup:]) for k, t in times.items()}
 
 
 def lookup_times(ks, cfg, repeats=7):
@@ -203,7 +205,12 @@ def main(argv=None):
     ap.add_argument("--out", default="benchmarks/results/train_throughput.json")
     args = ap.parse_args(argv)
 
-    cfg = FieldConfig.from_options(args.set)  # 4096 rays x 64 samples by default
+    try:
+        cfg = FieldConfig.from_options(args.set)  # 4096 rays x 64 samples by default
+    except UserError as exc:
+        ap.error(str(exc))
+    if cfg.occupancy_resolution > 0:
+        ap.error("the sample counts assume every sample is evaluated: leave occupancy_resolution at 0")
     rays = synthetic_rays()
     result = dict(batch_rays=cfg.batch_rays, n_samples=cfg.n_samples,
                   config=cfg.to_dict(), machine=platform.processor() or platform.machine(),

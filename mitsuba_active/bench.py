@@ -272,7 +272,7 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str) 
         with atomic_write(report_dir / f"table_{metric}.csv") as tmp:
             tmp.write_text("\n".join(",".join(map(str, r)) for r in csv_rows) + "\n")
     with atomic_write(report_dir / "table_mean.md") as tmp:
-        tmp.write_text("\n".join(_mean_table(summary["mean_over_scenes"][m], planners, METRICS[m][0])
+        tmp.write_text("\n".join(_mean_table(summary["mean_over_scenes"][m], planners, *METRICS[m])
                                  for m in METRICS))
     with atomic_write(report_dir / "results.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1))
@@ -343,12 +343,15 @@ def _table(summary: dict, scenes, planners, metric: str, title: str):
 
 
 def scene_means(summary: dict, scenes, planners, metric: str) -> dict:
-    """Each planner over the scenes where every planner has a value at every table view.
+    """Each planner over the scenes where every planner with results has a value at every table view.
 
-    Returns ``{planner: {"scenes": n, "mean@V": mean of the cells' IQMs,
-    "vs_B@V": mean difference to baseline B, "wins_vs_B@V": scenes where the
-    planner is better than B}}`` for each table view V and each baseline of
-    :data:`BASELINES` in the suite (better: higher, or lower for errors).
+    A planner without any such scene yet (a suite still running) is left out
+    of that condition and gets no means. Returns ``{planner: {"scenes": n,
+    "seeds": the distinct seed counts of its cells, "mean@V": mean of the
+    cells' IQMs, "vs_B@V": mean difference to baseline B, "wins_vs_B@V":
+    scenes where the planner is better than B}}`` for each table view V and
+    each baseline of :data:`BASELINES` with results (better: higher, or lower
+    for errors).
     """
     cells = {(c["scene"], c["planner"]): c for c in summary["cells"]}
 
@@ -356,31 +359,41 @@ def scene_means(summary: dict, scenes, planners, metric: str) -> dict:
         c = cells.get((s, p))
         return None if c is None else c[f"{metric}@{v}"]["iqm"]
 
+    def has_all(s, p):
+        return all(value(s, p, v) is not None for v in TABLE_VIEWS)
+
+    present = [p for p in planners if any(has_all(s, p) for s in scenes)]
+    complete = [s for s in scenes if present and all(has_all(s, p) for p in present)]
     higher_is_better = METRICS[metric][1]
-    complete = [s for s in scenes if all(value(s, p, v) is not None for p in planners for v in TABLE_VIEWS)]
     rows = {}
     for p in planners:
-        row = {"scenes": len(complete)}
+        used = complete if p in present else []
+        row = {"scenes": len(used), "seeds": sorted({cells[(s, p)].get("seeds") for s in used} - {None})}
         for v in TABLE_VIEWS:
-            row[f"mean@{v}"] = float(np.mean([value(s, p, v) for s in complete])) if complete else None
+            row[f"mean@{v}"] = float(np.mean([value(s, p, v) for s in used])) if used else None
             for b in BASELINES:
-                if b == p or b not in planners or not complete:
+                if b == p or b not in present or not used:
                     continue
-                diff = [value(s, p, v) - value(s, b, v) for s in complete]
+                diff = [value(s, p, v) - value(s, b, v) for s in used]
                 row[f"vs_{b}@{v}"] = float(np.mean(diff))
                 row[f"wins_vs_{b}@{v}"] = int(sum((d > 0) if higher_is_better else (d < 0) for d in diff))
         rows[p] = row
     return rows
 
 
-def _mean_table(means: dict, planners, title: str) -> str:
+def _mean_table(means: dict, planners, title: str, higher_is_better: bool = True) -> str:
     """Markdown of :func:`scene_means`: means, and margins over the baselines with scenes won."""
     n = max((r["scenes"] for r in means.values()), default=0)
-    baselines = [b for b in BASELINES if b in planners]
+    baselines = [b for b in BASELINES if any(f"vs_{b}@{v}" in r for r in means.values() for v in TABLE_VIEWS)]
     head = ["planner"] + [f"mean @{v}" for v in TABLE_VIEWS] + [f"vs {b} @{v}" for b in baselines for v in TABLE_VIEWS]
-    lines = [f"## {title}: mean over scenes", "",
-             f"Mean over {n} scenes of each cell's interquartile mean; 'vs B': the mean difference to "
-             f"planner B, and in brackets the scenes where the planner does better than B.", "",
+    intro = f"Mean over {n} scenes of each cell's interquartile mean ({'higher' if higher_is_better else 'lower'} is better)"
+    if baselines:
+        intro += ("; 'vs B': the mean difference to planner B, and in brackets the scenes where "
+                  "the planner does better than B")
+    seeds = {c for r in means.values() for c in r["seeds"]}
+    if len(seeds) > 1:
+        intro += f"; the cells cover {min(seeds)} to {max(seeds)} seeds (a suite still running)"
+    lines = [f"## {title}: mean over scenes", "", intro + ".", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for p in planners:
         r = means[p]

@@ -68,6 +68,32 @@ def test_scene_means_margins_and_wins_by_hand():
     assert e["rfe"]["vs_even@10"] == pytest.approx((2.0 - 1.5) / 2) and e["rfe"]["wins_vs_even@10"] == 1
     md = _mean_table(m, planners, "PSNR")
     assert "Mean over 2 scenes" in md and "| rfe | 26.75 | 30.50 | +1.75 (2/2) |" in md
+    assert "seeds (a suite still running)" not in md
+
+
+def test_scene_means_while_a_suite_is_still_running():
+    from mitsuba_active.bench import _mean_table, scene_means
+
+    def cell(scene, planner, psnr, seeds=3):
+        st = {"iqm": psnr}
+        return {"scene": scene, "planner": planner, "seeds": seeds, "psnr@10": st, "psnr@20": st}
+
+    none = {"iqm": None}
+    summary = {"cells": [cell("a", "even", 20), cell("a", "rfe", 21, seeds=2),
+                         cell("b", "even", 30), cell("b", "rfe", 33),
+                         # fisher has finished nothing yet; rfe has no 20-view result on c.
+                         cell("a", "fisher", None) | {"psnr@10": none, "psnr@20": none},
+                         cell("c", "even", 25), cell("c", "rfe", 26) | {"psnr@20": none}]}
+    planners = ["even", "rfe", "fisher"]
+    m = scene_means(summary, ["a", "b", "c"], planners, "psnr")
+    assert m["rfe"]["scenes"] == 2 and m["rfe"]["vs_even@10"] == pytest.approx(2.0)
+    assert m["rfe"]["seeds"] == [2, 3] and m["fisher"]["scenes"] == 0 and m["fisher"]["mean@10"] is None
+    md = _mean_table(m, planners, "PSNR")
+    assert "| fisher | n/a | n/a | - | - |" in md and "2 to 3 seeds" in md
+    # Without a baseline there are no margin columns to explain.
+    alone = scene_means(summary, ["a", "b"], ["rfe"], "psnr")
+    md = _mean_table(alone, ["rfe"], "PSNR")
+    assert "vs " not in md and "| rfe | 27.00 | 27.00 |" in md
 
 
 TINY_SUITE = """

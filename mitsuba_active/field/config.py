@@ -142,6 +142,8 @@ class FieldConfig:
         """
         from ..errors import UserError
 
+        # Every option is an int or a float (see the module docstring), so the
+        # type of its default parses its value.
         known = {f.name: type(f.default) for f in dataclasses.fields(cls)}
         options = dict(base)
         for item in items:

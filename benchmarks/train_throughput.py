@@ -88,14 +88,21 @@ def rss_mib() -> float:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
-def time_steps(ks, rays, cfg, steps, repeats, warmup):
-    """Per-step wall times for each K; the K's steps are interleaved
-    (K=1, K=4, K=1, ...) so that load from other processes hits all alike."""
+def ensembles(ks, rays, cfg, warmup):
+    """One ensemble per K on the synthetic rays, each trained ``warmup`` steps
+    (which compiles and caches every kernel of a full step)."""
     ens = {}
     for k in ks:
         ens[k] = Ensemble([-0.7] * 3, [0.7] * 3, n_members=k, config=cfg, seed=0)
         ens[k].set_rays(*rays)
-        ens[k].train(warmup)  # compiles and caches every kernel
+        ens[k].train(warmup)
+    return ens
+
+
+def time_steps(ks, rays, cfg, steps, repeats, warmup):
+    """Per-step wall times for each K; the K's steps are interleaved
+    (K=1, K=4, K=1, ...) so that load from other processes hits all alike."""
+    ens = ensembles(ks, rays, cfg, warmup)
     times = {k: [] for k in ks}
     for _ in range(repeats * steps):
         for k in ks:
@@ -107,11 +114,7 @@ def time_steps(ks, rays, cfg, steps, repeats, warmup):
 
 def phase_times(ks, rays, cfg, steps, warmup):
     """Median ms of the forward, backward and Adam phases of a step, per K."""
-    ens = {}
-    for k in ks:
-        ens[k] = Ensemble([-0.7] * 3, [0.7] * 3, n_members=k, config=cfg, seed=0)
-        ens[k].set_rays(*rays)
-        ens[k].train(warmup)
+    ens = ensembles(ks, rays, cfg, warmup)
     times = {k: {"forward": [], "backward": [], "adam": []} for k in ks}
     for _ in range(steps):
         for k, e in ens.items():
@@ -139,10 +142,7 @@ def grid_only_times(ks, rays, cfg, steps, warmup):
     grid, per K (the K's steps interleaved, as in :func:`time_steps`)."""
     from mitsuba_active.field.render import lookup_samples, sample_along_rays
 
-    ens = {}
-    for k in ks:
-        ens[k] = Ensemble([-0.7] * 3, [0.7] * 3, n_members=k, config=cfg, seed=0)
-        ens[k].set_rays(*rays)
+    ens = ensembles(ks, rays, cfg, 0)  # warmed up below, on the grid-only kernels
     times = {k: [] for k in ks}
     for j in range(warmup + steps):
         for k, e in ens.items():
@@ -252,9 +252,7 @@ def main(argv=None):
         print(f"grid-only step K=4 / K=1: {result['grid_only_k4_over_k1']:.2f}")
 
     if args.memory_steps > 0:
-        ens = Ensemble([-0.7] * 3, [0.7] * 3, n_members=1, config=cfg, seed=0)
-        ens.set_rays(*rays)
-        ens.train(100)
+        ens = ensembles([1], rays, cfg, 100)[1]
         trace = [(0, rss_mib())]
         done = 0
         while done < args.memory_steps:

@@ -149,3 +149,18 @@ def test_old_llvm_named_by_the_user_is_refused(tmp_path):
     env = dict(os.environ, DRJIT_LIBLLVM_PATH=str(old), **LLVM_VARIANT)
     proc = subprocess.run([sys.executable, "-c", "import mitsuba_active"], capture_output=True, text=True, env=env)
     assert proc.returncode != 0 and "LLVM 15" in proc.stderr and "libllvm19" in proc.stderr
+
+
+@pytest.mark.parametrize("script, args, message", [
+    ("train_throughput.py", ["--set", "speed=3"], "expected OPTION=VALUE with a FieldConfig option"),
+    ("train_throughput.py", ["--set", "occupancy_resolution=32"], "leave occupancy_resolution at 0"),
+    ("fit_quality.py", ["--set", "n_levels=two"], "FieldConfig.n_levels must be of type int"),
+])
+def test_benchmark_scripts_refuse_bad_field_options(script, args, message):
+    from tests.conftest import REPO
+
+    proc = subprocess.run([sys.executable, str(REPO / "benchmarks" / script), *args],
+                          capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 2 and message in proc.stderr
+    # argparse's usage line, then the error as the one last line; no traceback.
+    assert "Traceback" not in proc.stderr and message in proc.stderr.strip().splitlines()[-1]

@@ -183,7 +183,7 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     plots, a contact sheet of the chosen views and held-out renders.
     """
     from .planners import make_planner
-    from .run import Run, RunConfig, default_out_dir
+    from .run import INTERIOR_DISTANCE_WEIGHT, Run, RunConfig, default_out_dir
     from .datasets import open_source
 
     scene_path = str(scene_path or BUNDLED_SCENE)
@@ -202,6 +202,10 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     cfg.validate()
     source = open_source(scene_path, rig=rig, n_candidates=n_candidates, n_heldout=n_heldout,
                          resolution=resolution, fov=fov, spp=spp, downscale=downscale)
+    if distance_weight == 0 and getattr(getattr(source, "scene", None), "interior", False):
+        # Colour alone leaves a sparse-view field free to fill a room with fog (see README).
+        click.echo(f"note: {Path(scene_path).name} is a room seen from inside, which fits far better "
+                   f"with the distance maps: try --distance-weight {INTERIOR_DISTANCE_WEIGHT:g}", err=True)
     out = Path(out) if out else default_out_dir(scene_path, planner, seed)
     record = Run(source, cfg, out, progress=not quiet, log=lambda m: click.echo(m, err=True)).execute()
     rows = ", ".join(f"{m['views']}: {m['psnr']:.2f} dB" for m in record["metrics"])

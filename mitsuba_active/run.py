@@ -146,6 +146,11 @@ SPARSE_VIEW_FIELD = {"n_levels": 2, "lr": 0.01}
 #: have: a visible spread is what makes them disagree about unobserved space.
 PLANNER_INIT_SCALE = 2.0
 
+#: Distance-loss weight that ``plan`` suggests for rooms seen from inside.
+#: Trained on colour alone, the sparse-view field fills a room with fog;
+#: with the distance maps it finds the walls (Cornell box, ``docs/results.md``).
+INTERIOR_DISTANCE_WEIGHT = 10.0
+
 
 def make_ensemble(source, cfg: RunConfig, n_members: int, seed: int, planner: bool = True):
     """The planner's ensemble (``planner=True``) or an evaluation field, configured from ``cfg``."""

@@ -187,3 +187,15 @@ def test_bundled_suite_is_well_formed():
     assert len([s for s in suite.scenes if s.kind == "mesh"]) >= 6
     assert {s.name for s in suite.scenes if s.kind == "xml"} == {"simple", "cbox"}
     assert all(s.path.is_file() for s in suite.scenes)
+
+
+def test_interior_distance_suite_differs_only_by_the_distance_loss():
+    from mitsuba_active.run import INTERIOR_DISTANCE_WEIGHT
+    from tests.conftest import REPO
+
+    # It measures the weight that `plan` suggests for rooms.
+    suite = load_suite(REPO / "benchmarks" / "suites" / "interior_distance.toml")
+    plain, with_distance = suite.scenes
+    assert plain.path == with_distance.path and plain.path.is_file()
+    assert plain.run_options == {"rig": "interior"}
+    assert with_distance.run_options == {"rig": "interior", "distance_weight": INTERIOR_DISTANCE_WEIGHT}

@@ -143,6 +143,20 @@ def test_plan_cli_bad_inputs(spot_xml, tmp_path):
         assert not (tmp_path / "o").exists()
 
 
+def test_plan_suggests_the_distance_loss_for_rooms(spot_xml, shared_data, tmp_path):
+    from mitsuba_active.run import INTERIOR_DISTANCE_WEIGHT
+
+    # A budget above the candidate count stops the run before anything is rendered.
+    cbox = shared_data / "mitsuba" / "cbox" / "cbox.xml"
+    hint = f"try --distance-weight {INTERIOR_DISTANCE_WEIGHT:g}"
+    stop = ["--candidates", "4", "--budget", "5", "--out", str(tmp_path / "o")]
+    runs = {(cbox, "0"): True, (cbox, "10"): False, (spot_xml, "0"): False}
+    for (xml, weight), hinted in runs.items():
+        res = CliRunner().invoke(main, ["plan", str(xml), "--distance-weight", weight, *stop])
+        assert res.exit_code == 2 and "larger than" in res.output, res.output
+        assert (hint in res.output) is hinted, res.output
+
+
 def test_resume_refuses_a_changed_scene(source, tmp_path, spot_xml):
     from mitsuba_active.errors import UserError
 

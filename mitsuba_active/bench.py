@@ -209,6 +209,10 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
             for status in pool.imap_unordered(_run_job_star, [(j, threads) for j in jobs]):
                 bar.set_postfix_str(status["job"])
                 bar.update()
+            # Let the workers exit on their own: leaving the block terminates
+            # them, which can leak a semaphore (a warning at interpreter exit).
+            pool.close()
+            pool.join()
     bar.close()
     return write_report(suite, jobs, out_dir / "report", profile)
 

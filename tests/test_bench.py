@@ -162,6 +162,14 @@ def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
     assert not list(out.rglob("*seed1*"))
 
 
+def test_suite_runs_in_worker_processes(tiny_suite, tmp_path):
+    out = tmp_path / "out"
+    summary = run_suite(tiny_suite, out, "quick", workers=2, planners=["even"], progress=False)
+    assert {(c["scene"], c["planner"]) for c in summary["cells"]} == {("ball", "even"), ("simple", "even")}
+    records = [json.loads(p.read_text()) for p in out.rglob("run.json")]
+    assert len(records) == 2 and all(r["finished"] and len(r["captured"]) == 4 for r in records)
+
+
 def test_bad_suites(tmp_path):
     bad = tmp_path / "bad.toml"
     bad.write_text("planners = ['oracle']\n[[scenes]]\nmesh='x.obj'\n")

@@ -185,6 +185,7 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     from .planners import make_planner
     from .run import INTERIOR_DISTANCE_WEIGHT, Run, RunConfig, default_out_dir
     from .datasets import open_source
+    from .env import SceneSource
 
     scene_path = str(scene_path or BUNDLED_SCENE)
     options = {"form": score_form} if planner == "rfe" else {}
@@ -202,7 +203,7 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     cfg.validate()
     source = open_source(scene_path, rig=rig, n_candidates=n_candidates, n_heldout=n_heldout,
                          resolution=resolution, fov=fov, spp=spp, downscale=downscale)
-    if distance_weight == 0 and getattr(getattr(source, "scene", None), "interior", False):
+    if distance_weight == 0 and isinstance(source, SceneSource) and source.scene.interior:
         # Colour alone leaves a sparse-view field free to fill a room with fog (see README).
         click.echo(f"note: {Path(scene_path).name} is a room seen from inside, which fits far better "
                    f"with the distance maps: try --distance-weight {INTERIOR_DISTANCE_WEIGHT:g}", err=True)

@@ -16,8 +16,8 @@ A suite is a TOML file (see ``benchmarks/suites/shared.toml``)::
 
 Each (scene, planner, seed) is one :class:`~mitsuba_active.run.Run` with its
 own folder and run.json, so an interrupted suite resumes where it stopped.
-Every run has budget 20 and is evaluated at 5, 10, 15 and 20 views; the
-tables report 10 and 20 views, as the seed paper does, and a table of means
+Unless a suite sets otherwise, every run has budget 20 and is evaluated at
+5, 10, 15 and 20 views; the tables report 10 and 20 views, as the seed paper does, and a table of means
 over scenes gives each planner's margin over ``random`` and ``even``.
 """
 
@@ -62,6 +62,12 @@ class SuiteScene:
     run_options: dict = field(default_factory=dict)
 
 
+def _check_tables(path, where: str, settings: dict) -> None:
+    for key in ("field", "planner_options"):
+        if not isinstance(settings.get(key, {}), dict):
+            raise UserError(f"{path}: {where}: '{key}' must be a table, e.g. {key} = {{ lr = 0.01 }}")
+
+
 @dataclass
 class Suite:
     name: str
@@ -82,7 +88,8 @@ def load_suite(path) -> Suite:
         data = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"malformed suite file {path}: {exc}") from None
-    run_fields = {f.name for f in fields(RunConfig)}
+    # The suite's scenes, planners and the seeds name each run: not settings.
+    run_fields = {f.name for f in fields(RunConfig)} - set(JOB_KEYS)
     planners = data.get("planners", ["random", "even", "rfe"])
     for p in planners:
         make_planner(p)
@@ -90,6 +97,7 @@ def load_suite(path) -> Suite:
     bad = set(defaults) - run_fields
     if bad:
         raise UserError(f"{path}: unknown settings in [defaults]: {', '.join(sorted(bad))}")
+    _check_tables(path, "[defaults]", defaults)
     scenes = []
     for i, s in enumerate(data.get("scenes", [])):
         if ("mesh" in s) == ("xml" in s):
@@ -99,6 +107,7 @@ def load_suite(path) -> Suite:
         extra = set(s) - {"name", "mesh", "xml"} - set(SCENE_OPTIONS) - run_fields
         if extra:
             raise UserError(f"{path}: scene '{name}' has unknown settings: {', '.join(sorted(extra))}")
+        _check_tables(path, f"scene '{name}'", s)
         scenes.append(SuiteScene(name, (path.parent / s[kind]).resolve(), kind,
                                  {k: v for k, v in s.items() if k in SCENE_OPTIONS},
                                  {k: v for k, v in s.items() if k in run_fields}))
@@ -108,6 +117,10 @@ def load_suite(path) -> Suite:
     if len(set(names)) != len(names):
         raise UserError(f"{path}: scene names must be unique")
     return Suite(data.get("name", path.stem), planners, scenes, defaults)
+
+
+#: RunConfig fields that each job sets itself (from the suite and --seeds).
+JOB_KEYS = ("scene", "planner", "seed")
 
 
 @dataclass
@@ -120,8 +133,15 @@ class Job:
     out: str
 
 
-def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=None, scenes=None) -> list[Job]:
-    """Author mesh scenes (once) and list every run of the suite."""
+def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=None, scenes=None,
+              author: bool = True) -> list[Job]:
+    """Author the mesh scenes and list every run of the suite.
+
+    A mesh scene is authored anew each time (``author``), so that edited scene
+    options take effect; authoring is deterministic, so unchanged scenes keep
+    their content hash and their finished runs. Without ``author`` (reports
+    only) the scenes are left as they are.
+    """
     from .run import RunConfig
     from .scene import scene_from_mesh
 
@@ -136,7 +156,7 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
             continue
         if sc.kind == "mesh":
             xml = out_dir / "scenes" / sc.name / f"{sc.name}.xml"
-            if not xml.is_file():
+            if author:
                 opts = dict(sc.scene_options)
                 if "color" in opts:
                     opts["color"] = tuple(opts["color"])
@@ -148,8 +168,14 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                 # The profile sets the effort; the suite's defaults and each scene's own settings win.
                 settings = {"budget": 20, "eval_views": [5, 10, 15, 20], **prof, **suite.defaults,
                             **sc.run_options}
-                cfg = RunConfig(scene=str(xml), planner=planner, seed=int(seed), **settings)
-                cfg.validate()
+                # Field options merge too: a suite's `field` adds to the profile's.
+                settings["field"] = {**prof.get("field", {}), **suite.defaults.get("field", {}),
+                                     **sc.run_options.get("field", {})}
+                try:
+                    cfg = RunConfig(scene=str(xml), planner=planner, seed=int(seed), **settings)
+                    cfg.validate()
+                except TypeError as exc:  # e.g. budget = "20"
+                    raise UserError(f"scene '{sc.name}': a setting has the wrong type ({exc})") from None
                 jobs.append(Job(sc.name, planner, int(seed), str(xml), asdict(cfg),
                                 str(out_dir / "runs" / sc.name / f"{planner}-seed{seed}")))
     return jobs
@@ -167,8 +193,7 @@ def run_job(job: Job, threads: int | None = None) -> dict:
     if threads:
         dr.set_thread_count(threads)
     cfg = RunConfig(**job.config)
-    rec_path = Path(job.out) / "run.json"
-    if rec_path.is_file() and json.loads(rec_path.read_text()).get("finished"):
+    if finished_record(job) is not None:
         return {"job": f"{job.scene}/{job.planner}/{job.seed}", "skipped": True}
     t0 = time.perf_counter()
     source = SceneSource.from_xml(job.scene_xml, cfg.rig, cfg.candidates, cfg.heldout, cfg.resolution, cfg.fov,
@@ -193,7 +218,7 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
     out_dir = Path(out_dir)
     if workers < 1:
         raise UserError(f"--workers must be at least 1, got {workers}")
-    jobs = plan_jobs(suite, out_dir, profile, seeds, planners, scenes)
+    jobs = plan_jobs(suite, out_dir, profile, seeds, planners, scenes, author=not report_only)
     if report_only:
         return write_report(suite, jobs, out_dir / "report", profile)
     threads = max(1, (os.cpu_count() or 1) // workers)
@@ -225,15 +250,31 @@ def _run_job_star(args):
 # Reports
 # ---------------------------------------------------------------------------
 
+def finished_record(job: Job) -> dict | None:
+    """The job's run record if that run finished *with the job's settings*.
+
+    A run in the folder with other settings (the suite or the profile changed)
+    is not this job's: it is not skipped (the run then refuses the folder) nor
+    reported.
+    """
+    path = Path(job.out) / "run.json"
+    if not path.is_file():
+        return None
+    try:
+        rec = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    if rec.get("finished") and rec.get("config") == json.loads(json.dumps(job.config)):
+        return rec
+    return None
+
+
 def collect(jobs: list[Job]) -> dict:
     """scene -> planner -> list of finished run records (one per seed)."""
     out: dict = {}
     for job in jobs:
-        path = Path(job.out) / "run.json"
-        if not path.is_file():
-            continue
-        rec = json.loads(path.read_text())
-        if rec.get("finished"):
+        rec = finished_record(job)
+        if rec is not None:
             out.setdefault(job.scene, {}).setdefault(job.planner, []).append(rec)
     return out
 

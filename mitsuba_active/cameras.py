@@ -82,7 +82,9 @@ class Camera:
         return self.to_world[:3, 2] / np.linalg.norm(self.to_world[:3, 2])
 
     def intrinsics(self) -> np.ndarray:
-        """(3, 3) pinhole intrinsics K in pixels (OpenCV convention, square pixels)."""
+        """(3, 3) pinhole intrinsics K in pixels, square pixels, principal point at
+        the image centre ``(W/2, H/2)`` with pixel ``(0, 0)`` covering ``[0, 1)^2``
+        (the convention of transforms.json; OpenCV's pixel centres are 0.5 lower)."""
         fx = 0.5 * self.width / math.tan(math.radians(self.fov) / 2)
         return np.array([[fx, 0.0, self.width / 2], [0.0, fx, self.height / 2], [0.0, 0.0, 1.0]])
 
@@ -215,7 +217,7 @@ def rings(n, center, radius, fov=40.0, width=64, height=64, offset=0.0, up=(0, 1
 
 
 def interior(n, bbox_min, bbox_max, fov=70.0, width=64, height=64, offset=0.0, spread=0.4,
-             near=1e-3, far=1e4):
+             near=1e-3, far=1e4, up=(0, 1, 0)):
     """``n`` cameras inside a room, each looking across it through the centre.
 
     Positions lie on an ellipsoid at ``spread`` times the half extents
@@ -226,7 +228,7 @@ def interior(n, bbox_min, bbox_max, fov=70.0, width=64, height=64, offset=0.0, s
     lo, hi = np.asarray(bbox_min, dtype=np.float64), np.asarray(bbox_max, dtype=np.float64)
     center, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
     pos = center + spread * half * fibonacci_directions(n, offset)
-    return [Camera(look_at(p, center), fov, width, height, near, far) for p in pos]
+    return [Camera(look_at(p, center, up), fov, width, height, near, far) for p in pos]
 
 
 RIG_KINDS = ("auto", "sphere", "hemisphere", "rings", "interior", "xml")
@@ -255,7 +257,7 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
 
         def make(n, off):
             # Over-generate, then drop cameras that would sit inside furniture.
-            cams = interior(4 * n, scene.bbox_min, scene.bbox_max, fov, width, height, off)
+            cams = interior(4 * n, scene.bbox_min, scene.bbox_max, fov, width, height, off, up=scene.up)
             free = scene.free_space(np.stack([c.position for c in cams]))
             cams = [c for c, ok in zip(cams, free) if ok]
             if len(cams) < n:

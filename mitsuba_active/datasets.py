@@ -147,6 +147,9 @@ class DatasetSource:
         downscale = int(downscale)
         train = _subsample([_make_frame(t, downscale) for t in train], n_candidates)
         test = _subsample([_make_frame(t, downscale) for t in test], n_heldout)
+        if not test:
+            raise UserError(f"{root}: no held-out frames to evaluate on (no test or val split, or "
+                            "--heldout 0); tag some frames \"split\": \"test\"")
         if bounds is None:
             bounds = estimate_bounds([f.camera for f in train + test])
         return cls(train, test, bounds[0], bounds[1], name=name, white_background=white_background)

@@ -12,9 +12,8 @@ import math
 import shutil
 from pathlib import Path
 
-import numpy as np
-
-from .cameras import MITSUBA_TO_OPENGL, Camera
+from .cameras import Camera
+from .datasets import mitsuba_to_opengl
 from .errors import UserError
 from .imageio_utils import atomic_write
 
@@ -37,7 +36,7 @@ def export_transforms(run_dir, out_dir=None) -> Path:
     if missing:
         raise UserError(f"{run_dir}/views is missing images for views {missing}")
     ref = cams[0]
-    fl = 0.5 * ref.width / math.tan(math.radians(ref.fov) / 2)
+    k = ref.intrinsics()
     frames = []
     (out / "images").mkdir(parents=True, exist_ok=True)
     (out / "distance").mkdir(parents=True, exist_ok=True)
@@ -46,9 +45,9 @@ def export_transforms(run_dir, out_dir=None) -> Path:
         shutil.copyfile(run_dir / "views" / f"view_{n:03d}.png", out / img)
         shutil.copyfile(run_dir / "views" / f"view_{n:03d}.exr", out / dist)
         frames.append({"file_path": img, "distance_file_path": dist, "candidate": int(index),
-                       "transform_matrix": (cam.to_world @ MITSUBA_TO_OPENGL).tolist()})
+                       "transform_matrix": mitsuba_to_opengl(cam.to_world).tolist()})
     data = {"camera_model": "OPENCV", "camera_angle_x": math.radians(ref.fov),
-            "fl_x": fl, "fl_y": fl, "cx": ref.width / 2, "cy": ref.height / 2, "w": ref.width, "h": ref.height,
+            "fl_x": k[0, 0], "fl_y": k[1, 1], "cx": k[0, 2], "cy": k[1, 2], "w": ref.width, "h": ref.height,
             "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
             "distance_note": "distance_file_path: EXR channel Z, distance from the optical centre in scene "
                              "units along each pixel-centre ray (not depth); 0 where nothing is hit",
@@ -58,8 +57,3 @@ def export_transforms(run_dir, out_dir=None) -> Path:
         tmp.write_text(json.dumps(data, indent=1))
     return path
 
-
-def read_transforms_poses(path) -> list[np.ndarray]:
-    """Camera-to-world matrices (Mitsuba convention) read back from a transforms.json."""
-    data = json.loads(Path(path).read_text())
-    return [np.array(f["transform_matrix"], dtype=np.float64) @ MITSUBA_TO_OPENGL for f in data["frames"]]

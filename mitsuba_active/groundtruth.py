@@ -88,7 +88,7 @@ class GroundTruth:
         h = hashlib.sha256()
         h.update(f"v{CACHE_VERSION}|{self.scene.content_hash}|{self.spp}|".encode())
         h.update(np.round(camera.to_world, 9).astype(np.float64).tobytes())
-        h.update(f"|{camera.fov:.9g}|{camera.width}|{camera.height}|{camera.near:.9g}".encode())
+        h.update(f"|{camera.fov:.9g}|{camera.width}|{camera.height}|{camera.near:.9g}|{camera.far:.9g}".encode())
         return h.hexdigest()
 
     def render(self, camera: Camera) -> View:

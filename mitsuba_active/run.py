@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import camera_rays
-from .env import ActiveViewEnv
+from .env import ActiveViewEnv, SceneSource
 from .errors import UserError
 from .groundtruth import View
 from .imageio_utils import atomic_write, colorize, srgb_to_linear, write_exr, write_png
@@ -89,6 +89,7 @@ class RunConfig:
             (self.ensemble >= 1, f"the ensemble needs at least one member, got {self.ensemble}"),
             (self.batch >= 1, f"the batch must be at least 1, got {self.batch}"),
             (self.resolution > 0, f"image resolution must be positive, got {self.resolution}"),
+            (self.heldout >= 1, f"at least one held-out view is needed to evaluate on, got {self.heldout}"),
             (self.rays_per_candidate > 0, "rays per candidate must be positive"),
             (min(self.initial_steps, self.steps_per_view, self.eval_steps) >= 0, "training steps cannot be negative"),
             (self.eval_steps > 0, "evaluation steps must be positive"),
@@ -162,12 +163,16 @@ def make_ensemble(source, cfg: RunConfig, n_members: int, seed: int, planner: bo
         config = FieldConfig(**{**base, **cfg.field})
     except TypeError as exc:
         raise UserError(f"unknown field option: {exc}") from None
+    if config.empty_weight > 0 and not isinstance(source, SceneSource):
+        # A dataset's mask marks where the distance is known, not which rays hit nothing.
+        raise UserError("the empty-ray loss (empty_weight) needs rendered ground truth: a dataset "
+                        "does not say which rays hit nothing")
     return Ensemble(source.bbox_min, source.bbox_max, n_members=n_members, config=config, seed=seed)
 
 
-def train_on(ens, views: list[View], steps: int, progress: bool = False) -> None:
+def train_on(ens, views: list[View], steps: int, progress: bool = False, reset_occupancy: bool = True) -> None:
     r = view_rays(views)
-    ens.set_rays(r["origins"], r["directions"], r["rgb"], r["distance"], r["hit"])
+    ens.set_rays(r["origins"], r["directions"], r["rgb"], r["distance"], r["hit"], reset_occupancy)
     if steps > 0:
         ens.train(steps, progress=progress)
 
@@ -250,7 +255,8 @@ class Run:
             if rec.get("config") != self._config_dict():
                 raise UserError(f"{self.out} holds a run with other settings; choose another --out folder")
             if (rec.get("content_hash") != self._content_hash()
-                    or rec.get("candidates") != [c.to_dict() for c in self.source.candidates]):
+                    or rec.get("candidates") != [c.to_dict() for c in self.source.candidates]
+                    or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):
                 raise UserError(f"{self.out} holds a run of a scene that has changed since; "
                                 "choose another --out folder")
             self.record = rec
@@ -324,7 +330,8 @@ class Run:
                 from .field import Ensemble
 
                 self.ensemble = Ensemble.load(str(self.out / ens_file))
-                train_on(self.ensemble, self.env.views, 0)
+                # The rays it was trained on: its occupancy grid still holds.
+                train_on(self.ensemble, self.env.views, 0, reset_occupancy=False)
             elif self.env.views:
                 train_on(self.ensemble, self.env.views, cfg.initial_steps + cfg.steps_per_view * len(self.env.views),
                          self.progress)

@@ -203,7 +203,8 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
             shutil.copyfile(texture, staging / tex_file)
         (staging / out_xml.name).write_text(_scene_xml(mesh_file, tex_file, opts))
         _load_mitsuba(staging / out_xml.name)  # validate before anything lands
-        for f in staging.iterdir():
+        # The XML lands last: an XML on disk always finds its mesh and texture.
+        for f in sorted(staging.iterdir(), key=lambda f: f.name == out_xml.name):
             os.replace(f, out_dir / f.name)
     finally:
         shutil.rmtree(staging, ignore_errors=True)

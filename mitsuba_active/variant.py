@@ -1,9 +1,9 @@
 """Choose the Mitsuba variant and make sure Dr.Jit finds a usable LLVM.
 
-Dr.Jit's CPU backend loads ``libLLVM.so`` at run time. Dr.Jit 1.5 needs
-LLVM >= 15 at all and aborts with "Cannot select ... fminimum" on LLVM 14
-and 15, so we look for LLVM >= 19 ourselves *before* Dr.Jit is imported and
-point ``DRJIT_LIBLLVM_PATH`` at it. When none is found we stop with one line
+Dr.Jit's CPU backend loads ``libLLVM.so`` at run time. Dr.Jit 1.5 refuses
+LLVM older than 15 and aborts with "Cannot select ... fminimum" on LLVM 15,
+so we look for LLVM >= 19 ourselves *before* Dr.Jit is imported and point
+``DRJIT_LIBLLVM_PATH`` at it. When none is found we stop with one line
 that names the fix, instead of a crash deep inside the JIT.
 """
 
@@ -12,6 +12,7 @@ from __future__ import annotations
 import glob
 import os
 import re
+import sys
 
 from .errors import UserError
 
@@ -39,6 +40,11 @@ LLVM_FIX = (
 VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
 
 
+#: The LLVM library itself (libLLVM.so.19.1, libLLVM-19.so), not one of its
+#: companions such as libLLVMSPIRVLib.so.19.
+_LLVM_LIBRARY = re.compile(r"^libLLVM([-.]\d|\.so|\.dylib)")
+
+
 def _llvm_major(path: str) -> int | None:
     """Major LLVM version encoded in a library file name, e.g. libLLVM-19.so -> 19."""
     name = os.path.basename(os.path.realpath(path))
@@ -52,7 +58,9 @@ def find_llvm() -> str | None:
     """Path of the newest LLVM shared library with version >= MIN_LLVM, or None."""
     best, best_version = None, -1
     for pattern in LLVM_SEARCH_GLOBS:
-        for path in glob.glob(pattern):
+        for path in sorted(glob.glob(pattern)):
+            if not _LLVM_LIBRARY.match(os.path.basename(path)):
+                continue
             version = _llvm_major(path)
             if version is not None and version >= MIN_LLVM and version > best_version:
                 best, best_version = path, version
@@ -83,19 +91,23 @@ def set_variant(name: str | None = None) -> str:
 
     ``name`` defaults to ``$MITSUBA_ACTIVE_VARIANT`` or, when a Mitsuba
     variant with autodiff and RGB is already set by the caller's pipeline,
-    that one; otherwise ``llvm_ad_rgb``. ``cuda_ad_rgb`` needs a GPU.
+    that one (as it is: no LLVM check); otherwise ``llvm_ad_rgb``.
+    ``cuda_ad_rgb`` needs a GPU, and no LLVM.
     """
     name = name or os.environ.get("MITSUBA_ACTIVE_VARIANT")
     if name is not None and name not in VARIANTS:
         raise UserError(f"unknown variant '{name}'; choose one of {', '.join(VARIANTS)}")
-    if name != "cuda_ad_rgb":
+    # Only a Mitsuba the caller already imported can have a variant set.
+    loaded = sys.modules.get("mitsuba")
+    current = loaded.variant() if loaded is not None else None
+    if name is None and current in VARIANTS:
+        return current
+    name = name or "llvm_ad_rgb"
+    if name != "cuda_ad_rgb" and current != name:
         ensure_llvm()
     import mitsuba as mi
 
-    current = mi.variant()
-    if name is None:
-        name = current if current in VARIANTS else "llvm_ad_rgb"
-    if current != name:
+    if mi.variant() != name:
         try:
             mi.set_variant(name)
         except Exception as exc:  # e.g. no CUDA driver

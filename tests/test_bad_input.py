@@ -115,6 +115,8 @@ def test_llvm_search_rejects_old_versions(monkeypatch, tmp_path):
         (tmp_path / name).write_bytes(b"")
     monkeypatch.setattr(variant, "LLVM_SEARCH_GLOBS", (str(tmp_path / "libLLVM*.so*"),))
     assert variant.find_llvm() is None
+    (tmp_path / "libLLVMSPIRVLib.so.20.1").write_bytes(b"")  # a companion library, not LLVM itself
+    assert variant.find_llvm() is None
     (tmp_path / "libLLVM.so.19.1").write_bytes(b"")
     assert variant.find_llvm().endswith("libLLVM.so.19.1")
 

@@ -13,6 +13,8 @@ def test_iqm_and_standard_error_by_hand():
     assert iqm(range(1, 9)) == pytest.approx(4.5)  # 3, 4, 5, 6
     assert iqm([1, 2, 3, 4, 100]) == pytest.approx((0.75 * 2 + 3 + 0.75 * 4) / 2.5)  # fractional edges
     assert iqm([7.0]) == 7.0
+    assert iqm([1, 2, 10]) == pytest.approx((0.25 * 1 + 2 + 0.25 * 10) / 1.5)
+    assert iqm([3, 5]) == pytest.approx(4.0)
     assert standard_error([1, 2, 3, 4]) == pytest.approx(np.sqrt(5 / 3) / 2)
     assert standard_error([3.0]) == 0.0
 
@@ -181,11 +183,49 @@ def test_bad_suites(tmp_path):
     bad.write_text("[defaults]\nspeed = 3\n[[scenes]]\nmesh='x.obj'\n")
     with pytest.raises(UserError, match="unknown settings"):
         load_suite(bad)
+    bad.write_text("[defaults]\nseed = 3\n[[scenes]]\nmesh='x.obj'\n")
+    with pytest.raises(UserError, match="unknown settings in \\[defaults\\]: seed"):
+        load_suite(bad)
+    bad.write_text("[[scenes]]\nmesh='x.obj'\nplanner='rfe'\n")
+    with pytest.raises(UserError, match="unknown settings: planner"):
+        load_suite(bad)
+    bad.write_text("[defaults]\nfield = 3\n[[scenes]]\nmesh='x.obj'\n")
+    with pytest.raises(UserError, match="'field' must be a table"):
+        load_suite(bad)
     bad.write_text("name = [")
     with pytest.raises(UserError, match="malformed"):
         load_suite(bad)
     with pytest.raises(UserError, match="not found"):
         load_suite(tmp_path / "none.toml")
+
+
+def test_jobs_merge_field_options_and_check_types(tmp_path, shared_data):
+    from mitsuba_active.bench import PROFILES, plan_jobs
+
+    path = tmp_path / "s.toml"
+    xml = shared_data / "mitsuba/simple/scene.xml"
+    path.write_text(f"[defaults]\nfield = {{ lr = 0.02 }}\n[[scenes]]\nxml = '{xml}'\n")
+    job = plan_jobs(load_suite(path), tmp_path / "out", "quick", planners=["even"])[0]
+    assert job.config["field"] == {**PROFILES["quick"]["field"], "lr": 0.02}
+    path.write_text(f"[defaults]\nbudget = '20'\n[[scenes]]\nxml = '{xml}'\n")
+    with pytest.raises(UserError, match="wrong type"):
+        plan_jobs(load_suite(path), tmp_path / "out", "quick")
+
+
+def test_finished_runs_count_only_with_the_jobs_settings(tmp_path, shared_data):
+    from mitsuba_active.bench import collect, finished_record, plan_jobs
+
+    path = tmp_path / "s.toml"
+    path.write_text(f"[[scenes]]\nname = 'simple'\nxml = '{shared_data / 'mitsuba/simple/scene.xml'}'\n")
+    job = plan_jobs(load_suite(path), tmp_path / "out", "quick", planners=["even"])[0]
+    rec_path = tmp_path / "out" / "runs" / "simple" / "even-seed0" / "run.json"
+    rec_path.parent.mkdir(parents=True)
+    rec = {"finished": True, "config": job.config, "metrics": []}
+    rec_path.write_text(json.dumps(rec))
+    assert finished_record(job) is not None and collect([job]) == {"simple": {"even": [rec]}}
+    # The same folder after the suite's settings changed: neither skipped nor reported.
+    rec_path.write_text(json.dumps({**rec, "config": {**job.config, "budget": 12}}))
+    assert finished_record(job) is None and collect([job]) == {}
 
 
 def test_bundled_suite_is_well_formed():

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from mitsuba_active.cameras import (MITSUBA_TO_OPENGL, Camera, camera_rays, check_disjoint, fibonacci_sphere,
-                                    hemisphere, look_at, rings, scene_rigs)
+                                    hemisphere, interior, look_at, rings, scene_rigs)
 from mitsuba_active.errors import UserError
 from mitsuba_active.scene import load_scene
 
@@ -19,6 +19,14 @@ def test_rigs_look_at_the_centre_from_the_radius(rig):
         assert np.allclose(cam.to_world[:3, :3].T @ cam.to_world[:3, :3], np.eye(3), atol=1e-9)
     if rig is hemisphere:
         assert all(cam.position[1] > c[1] for cam in cams)
+
+
+def test_interior_rig_keeps_the_rooms_up_direction():
+    for up in ([0, 1, 0], [0, 0, 1]):
+        cams = interior(20, [-1, -1, -1], [1, 1, 1], up=up)
+        level = [c for c in cams if abs(np.dot(c.forward, up)) < 0.9]  # not looking straight up or down
+        assert len(level) > 10
+        assert all(abs(np.dot(c.to_world[:3, 0], up)) < 1e-9 and np.dot(c.to_world[:3, 1], up) > 0 for c in level)
 
 
 def test_heldout_rig_is_disjoint_and_duplicates_are_caught(spot_xml):

@@ -239,6 +239,16 @@ def test_estimated_bounds_centre_on_the_object():
     assert np.allclose(0.5 * (hi - lo), 1.1 * 4.0 * math.sin(math.radians(20.0)), rtol=1e-6)
 
 
+def test_the_empty_ray_loss_is_refused_on_a_dataset(tmp_path):
+    from mitsuba_active.run import RunConfig, make_ensemble
+
+    write_dataset(tmp_path, n=6)
+    src = DatasetSource.from_path(tmp_path)
+    make_ensemble(src, RunConfig(), 1, seed=0)
+    with pytest.raises(UserError, match="empty_weight"):
+        make_ensemble(src, RunConfig(field={"empty_weight": 1.0}), 1, seed=0)
+
+
 # -- errors -------------------------------------------------------------------------
 
 def _bad_json(root):
@@ -279,10 +289,19 @@ def _bad_aabb(root):
     write_dataset(root, n=3, extra={"aabb": [1, 2, 3]})
 
 
+def _no_test_frames(root):
+    write_dataset(root, n=4, frame_extra={k: {"split": "train"} for k in range(4)})
+
+
+def _nerfstudio_train_only(root):
+    write_dataset(root, n=4, extra={"train_filenames": ["images/f_000.png", "images/f_001.png"]})
+
+
 @pytest.mark.parametrize("make,message", [
     (_bad_json, "not valid JSON"), (_no_frames, "no frames"), (_no_focal, "camera_angle_x or fl_x"),
     (_all_missing, "none of the dataset's image files"), (_bad_matrix, "must be 4x4"),
     (_distorted, "distortion"), (_non_square, "non-square"), (_bad_aabb, "aabb"),
+    (_no_test_frames, "no held-out frames"), (_nerfstudio_train_only, "no held-out frames"),
 ])
 def test_malformed_datasets_fail_with_one_line(tmp_path, make, message):
     make(tmp_path)

@@ -84,13 +84,19 @@ def test_skipping_nothing_changes_neither_colours_nor_gradients():
 
 def test_save_load_keeps_the_occupancy(tmp_path):
     ens = Ensemble(*BOX, n_members=2, config=tiny_config(**SKIPPING), seed=1)
-    ens.set_rays(*views(FOUR_SIDES[:2], width=16, height=16))
+    rays = views(FOUR_SIDES[:2], width=16, height=16)
+    ens.set_rays(*rays)
     ens.train(40)
     o, d = camera_rays([1.0, 1.0, 2.0], width=16, height=16)
     ens.save(tmp_path / "field.npz")
     ens2 = Ensemble.load(tmp_path / "field.npz")
     assert np.array_equal(ens2.occupancy(), ens.occupancy())
     assert np.array_equal(ens2.render(o, d)["rgb"], ens.render(o, d)["rgb"])
+    # A resumed run gives the loaded ensemble back its own rays: the grid stays.
+    ens2.set_rays(*rays, reset_occupancy=False)
+    assert np.array_equal(ens2.occupancy(), ens.occupancy())
+    ens2.set_rays(*rays)
+    assert ens2.occupancy() is None
 
 
 def test_empty_ray_loss_clears_the_background():

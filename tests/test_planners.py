@@ -18,6 +18,24 @@ def test_registry_and_unknown_names():
         make_planner("rfe", form="median")
 
 
+def test_planner_options_are_checked():
+    for bad in (dict(lam="abc"), dict(lam=0), dict(probes=2.7), dict(probes=0), dict(probes=True)):
+        with pytest.raises(UserError, match="fisher"):
+            make_planner("fisher", **bad)
+    assert make_planner("fisher", lam=1, probes=3).options() == {"lam": 1.0, "probes": 3}
+
+
+def test_greedy_top_skips_unscored_candidates():
+    from mitsuba_active.planners.base import greedy_top
+
+    scores = np.array([1.0, np.inf, 0.5, np.nan, 0.2])
+    allowed = np.array([True, False, True, True, True])
+    assert greedy_top(scores, allowed, 3) == [0, 2, 4]
+    assert greedy_top(np.array([0.1, np.inf, 0.1]), np.ones(3, bool), 3) == [1, 0, 2]
+    with pytest.raises(UserError, match="could not be scored"):
+        greedy_top(scores, allowed, 4)
+
+
 def test_even_never_repeats_and_runs_out():
     planner, state = make_planner("even"), PlanningState(CANDS, [], rng=np.random.default_rng(0))
     for _ in range(4):

@@ -7,7 +7,8 @@ import pytest
 from click.testing import CliRunner
 
 from mitsuba_active.cli import main
-from mitsuba_active.export import export_transforms, read_transforms_poses
+from mitsuba_active.datasets import opengl_to_mitsuba
+from mitsuba_active.export import export_transforms
 from mitsuba_active.run import Run, RunConfig
 from tests.conftest import tiny_source
 
@@ -111,8 +112,8 @@ def test_export_round_trips_poses(source, tmp_path):
     path = export_transforms(tmp_path / "r", tmp_path / "ds")
     data = json.loads(path.read_text())
     assert len(data["frames"]) == 4 and data["w"] == 16 and "camera_angle_x" in data
-    for pose, index in zip(read_transforms_poses(path), rec["captured"]):
-        assert np.allclose(pose, source.candidates[index].to_world)
+    for frame, index in zip(data["frames"], rec["captured"]):
+        assert np.allclose(opengl_to_mitsuba(frame["transform_matrix"]), source.candidates[index].to_world)
     gl = np.array(data["frames"][0]["transform_matrix"])
     cam = source.candidates[rec["captured"][0]]
     assert np.allclose(-gl[:3, 2], cam.forward)  # OpenGL cameras look along -Z
@@ -152,7 +153,9 @@ def test_plan_cli_bad_inputs(spot_xml, tmp_path):
                          [["--ensemble", "1", "--budget", "5"], "at least 2 members"],
                          [["--planner", "fisher", "--planner-option", "probes=0"], "probes >= 1"],
                          [["--planner-option", "form"], "NAME=VALUE"],
-                         [["--planner", "even", "--planner-option", "lam=1"], "bad option"]):
+                         [["--planner", "even", "--planner-option", "lam=1"], "bad option"],
+                         [["--planner", "fisher", "--planner-option", "lam=abc"], "a number lam > 0"],
+                         [["--heldout", "0"], "held-out view"]):
         res = runner.invoke(main, ["plan", str(spot_xml), "--candidates", "10", "--out", str(tmp_path / "o"),
                                    *args])
         assert res.exit_code == 2 and needle in res.output and "Traceback" not in res.output, res.output
@@ -178,7 +181,14 @@ def test_resume_refuses_a_changed_scene(source, tmp_path, spot_xml):
 
     _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])
     rec = json.loads((tmp_path / "r" / "run.json").read_text())
+    content_hash = rec["content_hash"]
     rec["finished"], rec["content_hash"] = False, "another scene"
+    (tmp_path / "r" / "run.json").write_text(json.dumps(rec))
+    with pytest.raises(UserError, match="changed"):
+        _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])
+    # Other held-out views would make the metrics of the two sittings incomparable.
+    rec["content_hash"] = content_hash
+    rec["heldout"] = rec["heldout"][:1]
     (tmp_path / "r" / "run.json").write_text(json.dumps(rec))
     with pytest.raises(UserError, match="changed"):
         _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])

@@ -120,7 +120,7 @@ class Ensemble:
             raise UserError(f"member {member} out of range [0, {self.n_members})")
 
     # ------------------------------------------------------------------- data
-    def set_rays(self, origins, directions, rgb, distance, hit):
+    def set_rays(self, origins, directions, rgb, distance, hit, reset_occupancy: bool = True):
         """Replace the training rays (parameters and Adam state are kept).
 
         Args:
@@ -128,6 +128,10 @@ class Ensemble:
             rgb: (M,3) target colour in [0,1], distance: (M,) metric distance
             from the origin to the surface (ignored where ``~hit``),
             hit: (M,) bool.
+            reset_occupancy: start the occupancy grid over (new rays may show
+                surfaces where earlier ones saw empty space); False keeps
+                it, e.g. when giving a loaded ensemble back the rays it was
+                trained on.
         """
         o = np.asarray(origins, np.float32).reshape(-1, 3)
         d = np.asarray(directions, np.float32).reshape(-1, 3)
@@ -147,8 +151,8 @@ class Ensemble:
                           distance=mi.Float(dist), hit=mi.Bool(h))
         dr.eval(self._rays)
         self._n_rays = m
-        # New rays may show surfaces where earlier ones saw empty space.
-        self._reset_occupancy()
+        if reset_occupancy:
+            self._reset_occupancy()
 
     # -------------------------------------------------------------- occupancy
     def _reset_occupancy(self):

@@ -67,13 +67,19 @@ def unseen(state: PlanningState) -> np.ndarray:
 
 
 def greedy_top(scores: np.ndarray, allowed: np.ndarray, batch: int) -> list[int]:
-    """Indices of the ``batch`` best allowed scores, best first (ties: lower index)."""
-    s = np.where(allowed, scores, -np.inf)
-    order = np.lexsort((np.arange(len(s)), -s))
-    picks = [int(i) for i in order[:batch] if np.isfinite(s[i])]
-    if len(picks) < batch:
-        raise UserError(f"only {len(picks)} candidate views are left to choose from, asked for {batch}")
-    return picks
+    """Indices of the ``batch`` best allowed scores, best first (ties: lower index).
+
+    A NaN score (a candidate the model could not score) is never picked; +inf
+    ranks first.
+    """
+    scores = np.asarray(scores, dtype=np.float64)
+    ok = np.flatnonzero(np.asarray(allowed, dtype=bool) & ~np.isnan(scores))
+    if len(ok) < batch:
+        n_left = int(np.count_nonzero(allowed))
+        why = "" if len(ok) == n_left else f" ({n_left - len(ok)} of the {n_left} left could not be scored)"
+        raise UserError(f"only {len(ok)} candidate views are left to choose from, asked for {batch}{why}")
+    order = np.lexsort((ok, -scores[ok]))
+    return [int(ok[i]) for i in order[:batch]]
 
 
 REGISTRY: dict[str, type] = {}
@@ -91,5 +97,5 @@ def make_planner(name: str, **options) -> Planner:
         raise UserError(f"unknown planner '{name}'; choose one of {', '.join(sorted(REGISTRY))}")
     try:
         return REGISTRY[name](**options)
-    except TypeError as exc:
+    except (TypeError, ValueError) as exc:
         raise UserError(f"bad option for planner '{name}': {exc}") from None

@@ -7,8 +7,10 @@ gradients of rendered colours. A candidate's expected information gain is
     score(c) = sum_p H_c[p] / (H_train[p] + lambda)
 
 where H_train sums over the captured views. Batches are chosen greedily,
-folding each pick's H_c into H_train. ``lambda`` is relative to the mean
-diagonal entry, so the choice does not depend on the scale of H.
+folding each pick's H_c into H_train. ``lambda`` is ``lam`` times the sum
+of two means, of H_train's entries and of all candidates' entries, so the
+choice does not depend on the scale of H; as H_train sums the captured
+views, the damping grows with the views captured.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ def fisher_scores(h_candidates: np.ndarray, h_train: np.ndarray, lam: float) -> 
 
 
 def relative_lambda(h_candidates: np.ndarray, h_train: np.ndarray, lam_rel: float) -> float:
-    """``lam_rel`` times the mean diagonal entry over the training and candidate diagonals."""
+    """``lam_rel`` times (mean entry of ``h_train`` + mean entry of ``h_candidates``)."""
     scale = float(np.mean(h_train)) + float(np.mean(h_candidates))
     return lam_rel * max(scale, np.finfo(np.float64).tiny)
 
@@ -58,9 +60,12 @@ class FisherPlanner(Planner):
     max_members = 1
 
     def __init__(self, lam: float = 0.1, probes: int = 2):
+        # bool is an int too, and a float would be truncated: take whole numbers only.
+        whole = isinstance(probes, int) and not isinstance(probes, bool)
+        if not (isinstance(lam, (int, float)) and not isinstance(lam, bool) and lam > 0 and whole and probes >= 1):
+            raise UserError(f"fisher needs a number lam > 0 and a whole number probes >= 1, "
+                            f"got lam={lam!r}, probes={probes!r}")
         self.lam, self.probes = float(lam), int(probes)
-        if not self.lam > 0 or self.probes < 1:
-            raise UserError(f"fisher needs lam > 0 and probes >= 1, got lam={lam}, probes={probes}")
 
     def options(self):
         return {"lam": self.lam, "probes": self.probes}

@@ -17,7 +17,8 @@ A suite is a TOML file (see ``benchmarks/suites/shared.toml``)::
 Each (scene, planner, seed) is one :class:`~mitsuba_active.run.Run` with its
 own folder and run.json, so an interrupted suite resumes where it stopped.
 Unless a suite sets otherwise, every run has budget 20 and is evaluated at
-5, 10, 15 and 20 views; the tables report 10 and 20 views, as the seed paper does, and a table of means
+5, 10, 15 and 20 views; the tables report 10 and 20 views, as the seed paper does
+(other budgets: the budget and the count nearest half of it), and a table of means
 over scenes gives each planner's margin over ``random`` and ``even``.
 """
 
@@ -45,6 +46,7 @@ PROFILES = {
                   field={"batch_rays": 2048, "n_samples": 32}),
     "full": dict(seeds=[0, 1, 2, 3, 4], resolution=64, candidates=100, heldout=20, spp=64, ensemble=2),
 }
+#: View counts of the tables, as in the seed paper, when every run evaluates them.
 TABLE_VIEWS = (10, 20)
 #: Planners that the scene-mean table measures every other planner against.
 BASELINES = ("random", "even")
@@ -147,6 +149,10 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
 
     if profile not in PROFILES:
         raise UserError(f"unknown profile '{profile}'; use quick or full")
+    unknown = set(scenes or ()) - {sc.name for sc in suite.scenes}
+    if unknown:
+        raise UserError(f"no scene named {', '.join(sorted(unknown))} in the suite; it has "
+                        f"{', '.join(sc.name for sc in suite.scenes)}")
     prof = dict(PROFILES[profile])
     seeds = seeds or prof.pop("seeds")
     prof.pop("seeds", None)
@@ -291,6 +297,20 @@ def summarize(values) -> dict:
     return {"iqm": iqm(vals) if vals else None, "se": standard_error(vals) if vals else None, "n": len(vals)}
 
 
+def table_views(jobs: list[Job]) -> tuple:
+    """The view counts the tables report: :data:`TABLE_VIEWS` when every job
+    evaluates them, else the largest count every job evaluates and the one
+    nearest half of it (a suite with another budget or other counts)."""
+    from .run import RunConfig
+
+    common = set.intersection(*[set(RunConfig(**j.config).report_counts()) for j in jobs]) if jobs else set()
+    if set(TABLE_VIEWS) <= common or not common:
+        return TABLE_VIEWS
+    last = max(common)
+    rest = sorted(common - {last}, key=lambda v: (abs(v - last / 2), v))
+    return (rest[0], last) if rest else (last,)
+
+
 def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str) -> dict:
     """Tables (Markdown, CSV, JSON) in the layout of the seed's Tables I and III, and plots."""
     from .report import plot_metrics
@@ -298,14 +318,15 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str) 
     data = collect(jobs)
     scenes = [s.name for s in suite.scenes if s.name in data]
     planners = [p for p in dict.fromkeys(j.planner for j in jobs)]
-    summary = {"suite": suite.name, "profile": profile, "table_views": list(TABLE_VIEWS), "cells": []}
+    views = table_views(jobs)
+    summary = {"suite": suite.name, "profile": profile, "table_views": list(views), "cells": []}
     for scene in scenes:
         for planner in planners:
             recs = data[scene].get(planner, [])
             cell = {"scene": scene, "planner": planner, "seeds": len(recs),
                     "wall_seconds": summarize([r.get("wall_seconds") for r in recs])}
             for metric in METRICS:
-                for v in TABLE_VIEWS:
+                for v in views:
                     cell[f"{metric}@{v}"] = summarize([metric_at(r, metric, v) for r in recs])
             summary["cells"].append(cell)
     report_dir.mkdir(parents=True, exist_ok=True)
@@ -317,7 +338,7 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str) 
         with atomic_write(report_dir / f"table_{metric}.csv") as tmp:
             tmp.write_text("\n".join(",".join(map(str, r)) for r in csv_rows) + "\n")
     with atomic_write(report_dir / "table_mean.md") as tmp:
-        tmp.write_text("\n".join(_mean_table(summary["mean_over_scenes"][m], planners, *METRICS[m])
+        tmp.write_text("\n".join(_mean_table(summary["mean_over_scenes"][m], planners, *METRICS[m], views=views)
                                  for m in METRICS))
     with atomic_write(report_dir / "results.json") as tmp:
         tmp.write_text(json.dumps(summary, indent=1))
@@ -359,24 +380,25 @@ def _fmt(s: dict) -> str:
 
 def _table(summary: dict, scenes, planners, metric: str, title: str):
     cells = {(c["scene"], c["planner"]): c for c in summary["cells"]}
+    views = tuple(summary.get("table_views", TABLE_VIEWS))
     empty = {"iqm": None, "se": None, "n": 0}
     stats = {(s, p, v): cells[(s, p)][f"{metric}@{v}"] if (s, p) in cells else empty
-             for s in scenes for p in planners for v in TABLE_VIEWS}
+             for s in scenes for p in planners for v in views}
     counts = {st["n"] for st in stats.values() if st["n"]}
     # One seed count for the whole table, or each cell's own when they differ
     # (a suite still running).
     per_cell = len(counts) > 1
     seeds = "seeds (n per cell)" if per_cell else f"{max(counts, default=0)} seeds"
-    head = ["planner"] + [f"{s} @{v}" for s in scenes for v in TABLE_VIEWS] + ["wall time (s)"]
+    head = ["planner"] + [f"{s} @{v}" for s in scenes for v in views] + ["wall time (s)"]
     lines = [f"## {title}", "", f"Interquartile mean ± standard error over {seeds}, at "
-             + " and ".join(map(str, TABLE_VIEWS)) + " views captured.", "",
+             + " and ".join(map(str, views)) + " views captured.", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     csv_rows = [["planner", "scene", "views", "iqm", "se", "n"]]
     for p in planners:
         row, walls = [p], []
         for s in scenes:
             c = cells.get((s, p))
-            for v in TABLE_VIEWS:
+            for v in views:
                 st = stats[(s, p, v)]
                 row.append(f"{_fmt(st)} ({st['n']})" if per_cell and st["iqm"] is not None else _fmt(st))
                 csv_rows.append([p, s, v, st["iqm"], st["se"], st["n"]])
@@ -399,13 +421,14 @@ def scene_means(summary: dict, scenes, planners, metric: str) -> dict:
     for errors).
     """
     cells = {(c["scene"], c["planner"]): c for c in summary["cells"]}
+    views = tuple(summary.get("table_views", TABLE_VIEWS))
 
     def value(s, p, v):
         c = cells.get((s, p))
         return None if c is None else c[f"{metric}@{v}"]["iqm"]
 
     def has_all(s, p):
-        return all(value(s, p, v) is not None for v in TABLE_VIEWS)
+        return all(value(s, p, v) is not None for v in views)
 
     present = [p for p in planners if any(has_all(s, p) for s in scenes)]
     complete = [s for s in scenes if present and all(has_all(s, p) for p in present)]
@@ -414,7 +437,7 @@ def scene_means(summary: dict, scenes, planners, metric: str) -> dict:
     for p in planners:
         used = complete if p in present else []
         row = {"scenes": len(used), "seeds": sorted({cells[(s, p)].get("seeds") for s in used} - {None})}
-        for v in TABLE_VIEWS:
+        for v in views:
             row[f"mean@{v}"] = float(np.mean([value(s, p, v) for s in used])) if used else None
             for b in BASELINES:
                 if b == p or b not in present or not used:
@@ -426,11 +449,11 @@ def scene_means(summary: dict, scenes, planners, metric: str) -> dict:
     return rows
 
 
-def _mean_table(means: dict, planners, title: str, higher_is_better: bool = True) -> str:
+def _mean_table(means: dict, planners, title: str, higher_is_better: bool = True, views=TABLE_VIEWS) -> str:
     """Markdown of :func:`scene_means`: means, and margins over the baselines with scenes won."""
     n = max((r["scenes"] for r in means.values()), default=0)
-    baselines = [b for b in BASELINES if any(f"vs_{b}@{v}" in r for r in means.values() for v in TABLE_VIEWS)]
-    head = ["planner"] + [f"mean @{v}" for v in TABLE_VIEWS] + [f"vs {b} @{v}" for b in baselines for v in TABLE_VIEWS]
+    baselines = [b for b in BASELINES if any(f"vs_{b}@{v}" in r for r in means.values() for v in views)]
+    head = ["planner"] + [f"mean @{v}" for v in views] + [f"vs {b} @{v}" for b in baselines for v in views]
     intro = f"Mean over {n} scenes of each cell's interquartile mean ({'higher' if higher_is_better else 'lower'} is better)"
     if baselines:
         intro += ("; 'vs B': the mean difference to planner B, and in brackets the scenes where "
@@ -442,9 +465,9 @@ def _mean_table(means: dict, planners, title: str, higher_is_better: bool = True
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for p in planners:
         r = means[p]
-        row = [p] + ["n/a" if r[f"mean@{v}"] is None else f"{r[f'mean@{v}']:.2f}" for v in TABLE_VIEWS]
+        row = [p] + ["n/a" if r[f"mean@{v}"] is None else f"{r[f'mean@{v}']:.2f}" for v in views]
         for b in baselines:
-            for v in TABLE_VIEWS:
+            for v in views:
                 key = f"vs_{b}@{v}"
                 row.append(f"{r[key]:+.2f} ({r['wins_' + key]}/{n})" if key in r else "-")
         lines.append("| " + " | ".join(row) + " |")

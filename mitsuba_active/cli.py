@@ -1,13 +1,15 @@
 """The ``mitsuba-active`` command line.
 
 Every command turns bad input (:class:`~mitsuba_active.errors.UserError`)
-into one line on stderr and exit code 2.
+and files it cannot read or write (``OSError``) into one line on stderr and
+exit code 2.
 """
 
 from __future__ import annotations
 
 import functools
 import json
+import shutil
 import sys
 from pathlib import Path
 
@@ -25,6 +27,10 @@ def _one_line_errors(fn):
             return fn(*args, **kwargs)
         except UserError as exc:
             click.echo(f"mitsuba-active: error: {exc}", err=True)
+            sys.exit(2)
+        except OSError as exc:  # an output folder that cannot be created or written, a full disk...
+            where = f"{exc.filename}: " if exc.filename else ""
+            click.echo(f"mitsuba-active: error: {where}{exc.strerror or exc}", err=True)
             sys.exit(2)
         except KeyboardInterrupt:
             click.echo("mitsuba-active: interrupted", err=True)
@@ -54,7 +60,7 @@ def main():
 @click.option("--floor", is_flag=True, help="Add a floor under the object.")
 @_one_line_errors
 def scene(mesh, out, up, color, texture, no_texture, env_radiance, sun, point_lights, floor):
-    """Author a Mitsuba scene XML around MESH (OBJ, PLY, STL, GLB)."""
+    """Author a Mitsuba scene XML around MESH (OBJ, PLY, STL, GLB, glTF, OFF)."""
     from .scene import scene_from_mesh
 
     path = scene_from_mesh(mesh, out, up=up, color=tuple(color), texture=False if no_texture else texture,
@@ -154,7 +160,7 @@ def _parse_counts(text: str) -> list[int]:
 @click.option("--initial-views", type=int, default=2, show_default=True, help="Random views before planning.")
 @click.option("--ensemble", type=int, default=2, show_default=True, help="Fields K in the planner's ensemble.")
 @click.option("--batch", type=int, default=1, show_default=True, help="Views chosen per round.")
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--seed", type=click.IntRange(0, 2**31 - 1), default=0, show_default=True)
 @_rig_options
 @click.option("--downscale", type=int, default=None, help="Image downscale of a dataset [to fit --resolution].")
 @click.option("--rays-per-candidate", type=int, default=256, show_default=True,
@@ -178,14 +184,15 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
          eval_steps, distance_weight, out, quiet):
     """Choose views of SCENE_PATH with a planner and report reconstruction quality.
 
-    SCENE_PATH is a Mitsuba scene XML, a transforms.json (or a folder holding
-    one), or nothing for the bundled scene. Writes run.json, metrics.csv,
-    plots, a contact sheet of the chosen views and held-out renders.
+    SCENE_PATH is a Mitsuba scene XML, a mesh (a scene is authored around
+    it with the defaults of `mitsuba-active scene`, in OUT/scene), a
+    transforms.json (or a folder holding one), or nothing for the bundled
+    scene. Writes run.json, metrics.csv, plots, a contact sheet of the chosen
+    views and held-out renders.
     """
     from .planners import make_planner
-    from .run import INTERIOR_DISTANCE_WEIGHT, Run, RunConfig, default_out_dir
-    from .datasets import open_source
-    from .env import SceneSource
+    from .run import RunConfig, default_out_dir
+    from .scene import MESH_SUFFIXES, scene_from_mesh
 
     scene_path = str(scene_path or BUNDLED_SCENE)
     options = {"form": score_form} if planner == "rfe" else {}
@@ -201,17 +208,36 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     if eval_steps is not None:
         cfg.eval_steps = eval_steps
     cfg.validate()
-    source = open_source(scene_path, rig=rig, n_candidates=n_candidates, n_heldout=n_heldout,
-                         resolution=resolution, fov=fov, spp=spp, downscale=downscale)
-    if distance_weight == 0 and isinstance(source, SceneSource) and source.scene.interior:
-        # Colour alone leaves a sparse-view field free to fill a room with fog (see README).
-        click.echo(f"note: {Path(scene_path).name} is a room seen from inside, which fits far better "
-                   f"with the distance maps: try --distance-weight {INTERIOR_DISTANCE_WEIGHT:g}", err=True)
     out = Path(out) if out else default_out_dir(scene_path, planner, seed)
-    record = Run(source, cfg, out, progress=not quiet, log=lambda m: click.echo(m, err=True)).execute()
+    created = not out.exists()
+    try:
+        if Path(scene_path).suffix.lower() in MESH_SUFFIXES:
+            scene_path = str(scene_from_mesh(scene_path, out / "scene" / f"{Path(scene_path).stem}.xml"))
+            cfg.scene = scene_path
+        record = _plan(cfg, scene_path, out, quiet)
+    except BaseException:
+        # Without run.json there is nothing to resume: leave no half-made folder behind.
+        if created and out.is_dir() and not (out / "run.json").is_file():
+            shutil.rmtree(out, ignore_errors=True)
+        raise
     rows = ", ".join(f"{m['views']}: {m['psnr']:.2f} dB" for m in record["metrics"])
     click.echo(f"held-out PSNR by views captured: {rows}")
     click.echo(f"results in {out}")
+
+
+def _plan(cfg, scene_path: str, out: Path, quiet: bool) -> dict:
+    """Open the scene or dataset and run (or resume) the run in ``out``."""
+    from .datasets import open_source
+    from .env import SceneSource
+    from .run import INTERIOR_DISTANCE_WEIGHT, Run
+
+    source = open_source(scene_path, rig=cfg.rig, n_candidates=cfg.candidates, n_heldout=cfg.heldout,
+                         resolution=cfg.resolution, fov=cfg.fov, spp=cfg.spp, downscale=cfg.downscale)
+    if cfg.distance_weight == 0 and isinstance(source, SceneSource) and source.scene.interior:
+        # Colour alone leaves a sparse-view field free to fill a room with fog (see README).
+        click.echo(f"note: {Path(scene_path).name} is a room seen from inside, which fits far better "
+                   f"with the distance maps: try --distance-weight {INTERIOR_DISTANCE_WEIGHT:g}", err=True)
+    return Run(source, cfg, out, progress=not quiet, log=lambda m: click.echo(m, err=True)).execute()
 
 
 @main.command()

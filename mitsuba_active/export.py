@@ -29,7 +29,10 @@ def export_transforms(run_dir, out_dir=None) -> Path:
     except json.JSONDecodeError as exc:
         raise UserError(f"{rec_path} is damaged: {exc}") from None
     out = Path(out_dir) if out_dir else run_dir / "export"
-    cams = [Camera.from_dict(rec["candidates"][i]) for i in rec["captured"]]
+    try:
+        cams = [Camera.from_dict(rec["candidates"][i]) for i in rec["captured"]]
+    except (KeyError, IndexError, TypeError) as exc:
+        raise UserError(f"{rec_path} is not a run record of this tool ({type(exc).__name__}: {exc})") from None
     if not cams:
         raise UserError(f"{run_dir} has no captured views to export")
     missing = [n for n in range(len(cams)) if not (run_dir / "views" / f"view_{n:03d}.png").is_file()]

@@ -1,8 +1,9 @@
 """Ground truth: physically rendered RGB and distance for any camera, cached as EXR.
 
-RGB comes from the scene's own integrator (``mi.render``); distance is the
-length of the pixel-centre ray from the optical centre to the first hit
-(not Mitsuba's ``aov`` depth, which starts at the near-clip plane). Renders
+RGB comes from the scene's own integrator (``mi.render``; a path tracer when
+the XML names none); distance is the length of the pixel-centre ray from the
+optical centre to the first hit (not Mitsuba's ``aov`` depth, which starts at
+the near-clip plane). Renders
 are cached in a content-addressed EXR store: the key hashes the scene's
 content, the pose, the intrinsics, the resolution and the sample count.
 """
@@ -59,10 +60,12 @@ def render_distance(mi_scene, camera: Camera) -> np.ndarray:
 
 
 def render_rgb(mi_scene, camera: Camera, spp: int, seed: int = 0) -> np.ndarray:
-    """(H, W, 3) float32 linear radiance from the scene's integrator."""
+    """(H, W, 3) float32 linear radiance from the scene's integrator (a path
+    tracer when the scene names none, as Mitsuba XMLs may)."""
     import mitsuba as mi
 
-    img = mi.render(mi_scene, sensor=camera.sensor(spp), spp=spp, seed=seed)
+    integrator = mi_scene.integrator() or mi.load_dict({"type": "path"})
+    img = mi.render(mi_scene, sensor=camera.sensor(spp), integrator=integrator, spp=spp, seed=seed)
     return np.array(img, dtype=np.float32)[..., :3]
 
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -89,7 +90,10 @@ class RunConfig:
             (self.ensemble >= 1, f"the ensemble needs at least one member, got {self.ensemble}"),
             (self.batch >= 1, f"the batch must be at least 1, got {self.batch}"),
             (self.resolution > 0, f"image resolution must be positive, got {self.resolution}"),
+            (self.candidates >= 1, f"at least one candidate view is needed, got {self.candidates}"),
             (self.heldout >= 1, f"at least one held-out view is needed to evaluate on, got {self.heldout}"),
+            (math.isfinite(self.distance_weight) and self.distance_weight >= 0,
+             f"the distance weight must be a finite number >= 0, got {self.distance_weight}"),
             (self.rays_per_candidate > 0, "rays per candidate must be positive"),
             (min(self.initial_steps, self.steps_per_view, self.eval_steps) >= 0, "training steps cannot be negative"),
             (self.eval_steps > 0, "evaluation steps must be positive"),

@@ -347,6 +347,9 @@ def load_scene(xml_path, **params) -> Scene:
     xml_path = Path(xml_path)
     if not xml_path.is_file():
         raise UserError(f"scene file not found: {xml_path}")
+    if xml_path.suffix.lower() in MESH_SUFFIXES:
+        raise UserError(f"{xml_path} is a mesh, not a Mitsuba scene: author one around it first with "
+                        f"'mitsuba-active scene {xml_path} -o scene.xml'")
     refs = _referenced_files(xml_path)
     mi_scene = _load_mitsuba(xml_path, **params)
     if len(mi_scene.shapes()) == 0:

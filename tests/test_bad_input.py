@@ -166,3 +166,43 @@ def test_benchmark_scripts_refuse_bad_field_options(script, args, message):
     assert proc.returncode == 2 and message in proc.stderr
     # argparse's usage line, then the error as the one last line; no traceback.
     assert "Traceback" not in proc.stderr and message in proc.stderr.strip().splitlines()[-1]
+
+
+def test_unwritable_output_is_one_line(tmp_path, shared_data):
+    blocker = tmp_path / "afile"
+    blocker.write_text("")
+    code, text = run_cli("scene", shared_data / "meshes" / "suzanne.obj", "-o", blocker / "x.xml")
+    assert_one_line_error(code, text, "afile")
+
+
+def test_plan_bad_numbers_and_names(spot_xml, tmp_path):
+    out = tmp_path / "o"
+    for args, needle in ([["--distance-weight", "-1"], "distance weight"],
+                         [["--distance-weight", "inf"], "distance weight"],
+                         [["--candidates", "0"], "candidate view"]):
+        code, text = run_cli("plan", spot_xml, "--out", out, *args)
+        assert_one_line_error(code, text, needle)
+        assert not out.exists()
+    # Click's own range check: usage text, exit 2, no traceback.
+    result = CliRunner().invoke(main, ["plan", str(spot_xml), "--seed", "-1", "--out", str(out)])
+    assert result.exit_code == 2 and "--seed" in result.output and "Traceback" not in result.output
+
+
+def test_a_failed_plan_leaves_no_folder(tmp_path, shared_data):
+    # A mesh gets its scene authored into the run folder; the authored scene has
+    # one sensor, too few candidates for the budget: the folder goes again.
+    out = tmp_path / "o"
+    code, text = run_cli("plan", shared_data / "meshes" / "suzanne.obj", "--out", out, "--rig", "xml",
+                         "--budget", "2", "--heldout", "1", "--resolution", "8", "--spp", "1", "--quiet")
+    assert_one_line_error(code, text, "larger than the number of candidate views (1)")
+    assert not out.exists()
+
+
+def test_render_and_export_name_the_wrong_kind_of_input(tmp_path, shared_data, out):
+    code, text = run_cli("render", shared_data / "meshes" / "cow.obj", "-o", out)
+    assert_one_line_error(code, text, "mitsuba-active scene")
+    _assert_nothing_written(out)
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "run.json").write_text('{"format": 1}')
+    code, text = run_cli("export", tmp_path / "run")
+    assert_one_line_error(code, text, "not a run record")

@@ -134,10 +134,7 @@ def tiny_suite(tmp_path, shared_data):
 
 
 def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
-    from mitsuba_active import bench
-
-    # Tables report 10 and 20 views in real suites; this one stops at 4.
-    monkeypatch.setattr(bench, "TABLE_VIEWS", (2, 4))
+    # Tables report 10 and 20 views in real suites; this one stops at 4, so 2 and 4.
     out = tmp_path / "out"
     summary = run_suite(tiny_suite, out, "quick", workers=1, progress=False)
     assert len(summary["cells"]) == 4 and all(c["seeds"] == 1 for c in summary["cells"])
@@ -210,6 +207,8 @@ def test_jobs_merge_field_options_and_check_types(tmp_path, shared_data):
     path.write_text(f"[defaults]\nbudget = '20'\n[[scenes]]\nxml = '{xml}'\n")
     with pytest.raises(UserError, match="wrong type"):
         plan_jobs(load_suite(path), tmp_path / "out", "quick")
+    with pytest.raises(UserError, match="no scene named nope"):
+        plan_jobs(load_suite(path), tmp_path / "out", "quick", scenes=["nope"])
 
 
 def test_finished_runs_count_only_with_the_jobs_settings(tmp_path, shared_data):

@@ -66,3 +66,12 @@ def test_shared_scenes_render_plausibly(shared_data):
         assert view.mask.any() and view.rgb[view.mask].mean() > 0.02
         if src.scene.interior:
             assert view.mask.mean() > 0.5  # inside the room (open at the front) most rays meet a wall
+
+
+def test_a_scene_without_an_integrator_is_path_traced(tmp_path):
+    xml = tmp_path / "bare.xml"
+    xml.write_text('<scene version="3.0.0"><shape type="sphere"/><emitter type="constant"/></scene>')
+    cam = fibonacci_sphere(1, [0, 0, 0], 4.0, 40.0, 8, 8)[0]
+    view = GroundTruth(load_scene(xml), spp=2, cache_dir=False).render(cam)
+    # A white diffuse sphere under a unit white sky: lit, not black, and hit in the middle.
+    assert view.mask[4, 4] and 0.2 < view.rgb[4, 4].mean() <= 1.0

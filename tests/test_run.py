@@ -208,3 +208,18 @@ def test_plan_command_end_to_end(spot_xml, tmp_path):
     assert not (out / "ensemble_002.npz").exists()
     res = CliRunner().invoke(main, ["export", str(out)])
     assert res.exit_code == 0 and (out / "export" / "transforms.json").is_file()
+
+
+def test_plan_takes_a_mesh(shared_data, tmp_path):
+    out = tmp_path / "m"
+    args = ["plan", str(shared_data / "meshes" / "suzanne.obj"), "--planner", "even", "--budget", "2",
+            "--initial-views", "1", "--candidates", "4", "--heldout", "1", "--resolution", "8", "--spp", "1",
+            "--eval-views", "2", "--eval-steps", "10", "--quiet", "--out", str(out)]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0, res.output
+    rec = json.loads((out / "run.json").read_text())
+    assert rec["finished"] and rec["config"]["scene"] == str(out / "scene" / "suzanne.xml")
+    assert (out / "scene" / "suzanne.xml").is_file()
+    # The same command again finds the finished run (authoring anew changes nothing).
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0 and "already complete" in res.output, res.output

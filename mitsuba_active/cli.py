@@ -11,6 +11,7 @@ import functools
 import json
 import shutil
 import sys
+import warnings
 from pathlib import Path
 
 import click
@@ -42,6 +43,8 @@ def _one_line_errors(fn):
 @click.version_option(package_name="mitsuba-active")
 def main():
     """Active view planning of radiance fields with Mitsuba 3 and Dr.Jit."""
+    # Warnings (skipped dataset frames, a scene without lights) as one plain line.
+    warnings.formatwarning = lambda message, *args, **kwargs: f"mitsuba-active: warning: {message}\n"
 
 
 @main.command()
@@ -276,8 +279,10 @@ def bench(suite, out, profile, workers, seeds, planners, scenes, report_only, qu
     except ValueError:
         raise UserError(f"--seeds takes comma-separated integers, got '{seeds}'") from None
     out = Path(out) if out else Path("bench") / f"{Path(suite).stem}-{profile}"
-    run_suite(suite, out, profile, workers, seed_list, split(planners), split(scenes), progress=not quiet,
-              report_only=report_only)
+    summary = run_suite(suite, out, profile, workers, seed_list, split(planners), split(scenes),
+                        progress=not quiet, report_only=report_only)
+    if not summary["cells"]:
+        click.echo(f"note: no finished runs in {out} yet", err=True)
     click.echo(f"tables and plots in {out / 'report'}")
 
 

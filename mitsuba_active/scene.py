@@ -13,6 +13,7 @@ import os
 import shutil
 import struct
 import tempfile
+import warnings
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -354,6 +355,8 @@ def load_scene(xml_path, **params) -> Scene:
     mi_scene = _load_mitsuba(xml_path, **params)
     if len(mi_scene.shapes()) == 0:
         raise UserError(f"scene {xml_path} has no shapes")
+    if len(mi_scene.emitters()) == 0:
+        warnings.warn(f"scene {xml_path} has no lights: every view renders black", stacklevel=2)
     bbox = mi_scene.bbox()
     lo, hi = np.array(bbox.min, dtype=np.float64), np.array(bbox.max, dtype=np.float64)
     if not (np.isfinite(lo).all() and np.isfinite(hi).all()) or np.max(hi - lo) <= 0:

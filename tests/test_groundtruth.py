@@ -75,3 +75,12 @@ def test_a_scene_without_an_integrator_is_path_traced(tmp_path):
     view = GroundTruth(load_scene(xml), spp=2, cache_dir=False).render(cam)
     # A white diffuse sphere under a unit white sky: lit, not black, and hit in the middle.
     assert view.mask[4, 4] and 0.2 < view.rgb[4, 4].mean() <= 1.0
+
+
+def test_a_scene_without_lights_is_flagged(tmp_path):
+    import pytest
+
+    xml = tmp_path / "dark.xml"
+    xml.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
+    with pytest.warns(UserWarning, match="no lights"):
+        load_scene(xml)

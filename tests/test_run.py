@@ -153,7 +153,7 @@ def test_plan_cli_bad_inputs(spot_xml, tmp_path):
                          [["--ensemble", "1", "--budget", "5"], "at least 2 members"],
                          [["--planner", "fisher", "--planner-option", "probes=0"], "probes >= 1"],
                          [["--planner-option", "form"], "NAME=VALUE"],
-                         [["--planner", "even", "--planner-option", "lam=1"], "bad option"],
+                         [["--planner", "even", "--planner-option", "lam=1"], "unknown option lam (it takes none)"],
                          [["--planner", "fisher", "--planner-option", "lam=abc"], "a number lam > 0"],
                          [["--heldout", "0"], "held-out view"]):
         res = runner.invoke(main, ["plan", str(spot_xml), "--candidates", "10", "--out", str(tmp_path / "o"),

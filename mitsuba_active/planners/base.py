@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -98,4 +99,9 @@ def make_planner(name: str, **options) -> Planner:
     try:
         return REGISTRY[name](**options)
     except (TypeError, ValueError) as exc:
-        raise UserError(f"bad option for planner '{name}': {exc}") from None
+        params = inspect.signature(REGISTRY[name].__init__).parameters.values()
+        accepted = [q.name for q in params if q.name != "self" and q.kind == q.POSITIONAL_OR_KEYWORD]
+        known = f" (it takes {', '.join(accepted)})" if accepted else " (it takes none)"
+        unknown = set(options) - set(accepted)
+        why = f"unknown option {', '.join(sorted(unknown))}" if unknown else str(exc)
+        raise UserError(f"bad option for planner '{name}': {why}{known}") from None

@@ -3,9 +3,9 @@
 RGB comes from the scene's own integrator (``mi.render``; a path tracer when
 the XML names none); distance is the length of the pixel-centre ray from the
 optical centre to the first hit (not Mitsuba's ``aov`` depth, which starts at
-the near-clip plane). Renders
-are cached in a content-addressed EXR store: the key hashes the scene's
-content, the pose, the intrinsics, the resolution and the sample count.
+the near-clip plane). Renders are cached in a content-addressed EXR store:
+the key hashes the scene's content, the pose, the intrinsics, the clip
+distances, the resolution and the sample count.
 """
 
 from __future__ import annotations

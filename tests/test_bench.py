@@ -169,29 +169,24 @@ def test_suite_runs_in_worker_processes(tiny_suite, tmp_path):
     assert len(records) == 2 and all(r["finished"] and len(r["captured"]) == 4 for r in records)
 
 
-def test_bad_suites(tmp_path):
+@pytest.mark.parametrize("text, message", [
+    ("planners = ['oracle']\n[[scenes]]\nmesh='x.obj'\n", "unknown planner"),
+    ("[[scenes]]\nname='a'\n", "exactly one"),
+    ("[defaults]\nspeed = 3\n[[scenes]]\nmesh='x.obj'\n", "unknown settings"),
+    # The scenes, planners and --seeds name the runs: not settings.
+    ("[defaults]\nseed = 3\n[[scenes]]\nmesh='x.obj'\n", "unknown settings in \\[defaults\\]: seed"),
+    ("[[scenes]]\nmesh='x.obj'\nplanner='rfe'\n", "unknown settings: planner"),
+    ("[defaults]\nfield = 3\n[[scenes]]\nmesh='x.obj'\n", "'field' must be a table"),
+    ("name = [", "malformed"),
+])
+def test_bad_suites(tmp_path, text, message):
     bad = tmp_path / "bad.toml"
-    bad.write_text("planners = ['oracle']\n[[scenes]]\nmesh='x.obj'\n")
-    with pytest.raises(UserError, match="unknown planner"):
+    bad.write_text(text)
+    with pytest.raises(UserError, match=message):
         load_suite(bad)
-    bad.write_text("[[scenes]]\nname='a'\n")
-    with pytest.raises(UserError, match="exactly one"):
-        load_suite(bad)
-    bad.write_text("[defaults]\nspeed = 3\n[[scenes]]\nmesh='x.obj'\n")
-    with pytest.raises(UserError, match="unknown settings"):
-        load_suite(bad)
-    bad.write_text("[defaults]\nseed = 3\n[[scenes]]\nmesh='x.obj'\n")
-    with pytest.raises(UserError, match="unknown settings in \\[defaults\\]: seed"):
-        load_suite(bad)
-    bad.write_text("[[scenes]]\nmesh='x.obj'\nplanner='rfe'\n")
-    with pytest.raises(UserError, match="unknown settings: planner"):
-        load_suite(bad)
-    bad.write_text("[defaults]\nfield = 3\n[[scenes]]\nmesh='x.obj'\n")
-    with pytest.raises(UserError, match="'field' must be a table"):
-        load_suite(bad)
-    bad.write_text("name = [")
-    with pytest.raises(UserError, match="malformed"):
-        load_suite(bad)
+
+
+def test_missing_suite(tmp_path):
     with pytest.raises(UserError, match="not found"):
         load_suite(tmp_path / "none.toml")
 

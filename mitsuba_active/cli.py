@@ -240,7 +240,10 @@ def _plan(cfg, scene_path: str, out: Path, quiet: bool) -> dict:
         # Colour alone leaves a sparse-view field free to fill a room with fog (see README).
         click.echo(f"note: {Path(scene_path).name} is a room seen from inside, which fits far better "
                    f"with the distance maps: try --distance-weight {INTERIOR_DISTANCE_WEIGHT:g}", err=True)
-    return Run(source, cfg, out, progress=not quiet, log=lambda m: click.echo(m, err=True)).execute()
+    from tqdm import tqdm
+
+    # tqdm.write keeps a line from landing on a progress bar that is being drawn.
+    return Run(source, cfg, out, progress=not quiet, log=lambda m: tqdm.write(m, file=sys.stderr)).execute()
 
 
 @main.command()

@@ -49,6 +49,7 @@ def plot_metrics(series: dict[str, list[dict]], out_dir, title: str = "", bands:
             plt.close(fig)
             continue
         ax.set_xlabel("views captured")
+        ax.xaxis.set_major_locator(plt.MaxNLocator(integer=True))
         ax.set_ylabel(label)
         ax.set_title(title)
         ax.grid(alpha=0.3)

@@ -207,7 +207,9 @@ def evaluate(source, views: list[View], cfg: RunConfig, progress: bool = False) 
         p_list.append(psnr(pred["rgb"], gt.rgb))
         s_list.append(ssim(pred["rgb"], gt.rgb) if min(gt.rgb.shape[:2]) >= 11 else float("nan"))
         d_list.append(distance_error(pred["distance"], gt.distance, gt.mask))
-    metrics = {"views": len(views), "psnr": float(np.mean(p_list)), "ssim": float(np.nanmean(s_list)),
+    # SSIM needs 11x11 pixels: below that it is None (null in run.json), like a missing distance error.
+    metrics = {"views": len(views), "psnr": float(np.mean(p_list)),
+               "ssim": None if np.isnan(s_list).all() else float(np.nanmean(s_list)),
                "distance_error": float(np.nanmean(d_list)) if not np.isnan(d_list).all() else None,
                "eval_seconds": round(time.perf_counter() - t0, 3)}
     return metrics, preds
@@ -384,8 +386,8 @@ class Run:
                 self.record["metrics"].sort(key=lambda m: m["views"])
                 self._last_preds = preds
                 dist = "n/a" if metrics["distance_error"] is None else f"{metrics['distance_error']:.2f}%"
-                self.log(f"  {count:3d} views: PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.3f}, "
-                         f"distance error {dist}")
+                ssim_ = "n/a" if metrics["ssim"] is None else f"{metrics['ssim']:.3f}"
+                self.log(f"  {count:3d} views: PSNR {metrics['psnr']:.2f} dB, SSIM {ssim_}, distance error {dist}")
                 self._save_record()
 
     # -- results ------------------------------------------------------------

@@ -21,11 +21,18 @@ from .errors import UserError
 from .scenes import BUNDLED_SCENE
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    """Warnings (skipped dataset frames, a scene without lights) as one plain line."""
+    click.echo(f"mitsuba-active: warning: {message}", err=True)
+
+
 def _one_line_errors(fn):
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
-            return fn(*args, **kwargs)
+            with warnings.catch_warnings():
+                warnings.showwarning = _show_warning
+                return fn(*args, **kwargs)
         except UserError as exc:
             click.echo(f"mitsuba-active: error: {exc}", err=True)
             sys.exit(2)
@@ -43,8 +50,6 @@ def _one_line_errors(fn):
 @click.version_option(package_name="mitsuba-active")
 def main():
     """Active view planning of radiance fields with Mitsuba 3 and Dr.Jit."""
-    # Warnings (skipped dataset frames, a scene without lights) as one plain line.
-    warnings.formatwarning = lambda message, *args, **kwargs: f"mitsuba-active: warning: {message}\n"
 
 
 @main.command()

@@ -235,6 +235,8 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
 
 def _plan(cfg, scene_path: str, out: Path, quiet: bool) -> dict:
     """Open the scene or dataset and run (or resume) the run in ``out``."""
+    from tqdm import tqdm
+
     from .datasets import open_source
     from .env import SceneSource
     from .run import INTERIOR_DISTANCE_WEIGHT, Run
@@ -245,8 +247,6 @@ def _plan(cfg, scene_path: str, out: Path, quiet: bool) -> dict:
         # Colour alone leaves a sparse-view field free to fill a room with fog (see README).
         click.echo(f"note: {Path(scene_path).name} is a room seen from inside, which fits far better "
                    f"with the distance maps: try --distance-weight {INTERIOR_DISTANCE_WEIGHT:g}", err=True)
-    from tqdm import tqdm
-
     # tqdm.write keeps a line from landing on a progress bar that is being drawn.
     return Run(source, cfg, out, progress=not quiet, log=lambda m: tqdm.write(m, file=sys.stderr)).execute()
 

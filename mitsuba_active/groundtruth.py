@@ -10,6 +10,7 @@ distances, the resolution and the sample count.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 from dataclasses import dataclass
@@ -64,9 +65,17 @@ def render_rgb(mi_scene, camera: Camera, spp: int, seed: int = 0) -> np.ndarray:
     tracer when the scene names none, as Mitsuba XMLs may)."""
     import mitsuba as mi
 
-    integrator = mi_scene.integrator() or mi.load_dict({"type": "path"})
+    integrator = mi_scene.integrator() or _path_integrator(mi.variant())
     img = mi.render(mi_scene, sensor=camera.sensor(spp), integrator=integrator, spp=spp, seed=seed)
     return np.array(img, dtype=np.float32)[..., :3]
+
+
+@functools.lru_cache(maxsize=None)
+def _path_integrator(variant: str):
+    """A default path tracer, made once per variant (the cache key) rather than once per render."""
+    import mitsuba as mi
+
+    return mi.load_dict({"type": "path"})
 
 
 class GroundTruth:

@@ -207,12 +207,15 @@ def evaluate(source, views: list[View], cfg: RunConfig, progress: bool = False) 
         p_list.append(psnr(pred["rgb"], gt.rgb))
         s_list.append(ssim(pred["rgb"], gt.rgb) if min(gt.rgb.shape[:2]) >= 11 else float("nan"))
         d_list.append(distance_error(pred["distance"], gt.distance, gt.mask))
-    # SSIM needs 11x11 pixels: below that it is None (null in run.json), like a missing distance error.
-    metrics = {"views": len(views), "psnr": float(np.mean(p_list)),
-               "ssim": None if np.isnan(s_list).all() else float(np.nanmean(s_list)),
-               "distance_error": float(np.nanmean(d_list)) if not np.isnan(d_list).all() else None,
-               "eval_seconds": round(time.perf_counter() - t0, 3)}
+    # SSIM needs 11x11 pixels and the distance error needs hits: without them, None (null in run.json).
+    metrics = {"views": len(views), "psnr": float(np.mean(p_list)), "ssim": _mean_or_none(s_list),
+               "distance_error": _mean_or_none(d_list), "eval_seconds": round(time.perf_counter() - t0, 3)}
     return metrics, preds
+
+
+def _mean_or_none(values) -> float | None:
+    """Mean of the finite values, or None when every value is NaN."""
+    return None if np.isnan(values).all() else float(np.nanmean(values))
 
 
 # ---------------------------------------------------------------------------

@@ -60,9 +60,11 @@ class FisherPlanner(Planner):
     max_members = 1
 
     def __init__(self, lam: float = 0.1, probes: int = 2):
-        # bool is an int too, and a float would be truncated: take whole numbers only.
-        whole = isinstance(probes, int) and not isinstance(probes, bool)
-        if not (isinstance(lam, (int, float)) and not isinstance(lam, bool) and lam > 0 and whole and probes >= 1):
+        # A float probes would be truncated: whole numbers only (and bool, an int too, is neither).
+        def plain(x, kinds):
+            return isinstance(x, kinds) and not isinstance(x, bool)
+
+        if not (plain(lam, (int, float)) and lam > 0 and plain(probes, int) and probes >= 1):
             raise UserError(f"fisher needs a number lam > 0 and a whole number probes >= 1, "
                             f"got lam={lam!r}, probes={probes!r}")
         self.lam, self.probes = float(lam), int(probes)

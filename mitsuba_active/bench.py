@@ -53,6 +53,10 @@ BASELINES = ("random", "even")
 #: Metrics of the tables: title, and whether higher values are better.
 METRICS = {"psnr": ("Photometric held-out PSNR (dB)", True),
            "distance_error": ("Distance error (%)", False)}
+#: RunConfig fields that each job sets itself (from the suite and --seeds).
+JOB_KEYS = ("scene", "planner", "seed")
+#: RunConfig fields that are tables: settings merge into them key by key.
+TABLE_KEYS = ("field", "planner_options")
 
 
 @dataclass
@@ -65,7 +69,7 @@ class SuiteScene:
 
 
 def _check_tables(path, where: str, settings: dict) -> None:
-    for key in ("field", "planner_options"):
+    for key in TABLE_KEYS:
         if not isinstance(settings.get(key, {}), dict):
             raise UserError(f"{path}: {where}: '{key}' must be a table, e.g. {key} = {{ lr = 0.01 }}")
 
@@ -121,8 +125,42 @@ def load_suite(path) -> Suite:
     return Suite(data.get("name", path.stem), planners, scenes, defaults)
 
 
-#: RunConfig fields that each job sets itself (from the suite and --seeds).
-JOB_KEYS = ("scene", "planner", "seed")
+def parse_overrides(items) -> dict:
+    """``KEY=VALUE`` strings (``bench --set``) to run settings.
+
+    KEY is a :class:`~mitsuba_active.run.RunConfig` field (``ensemble``) or an
+    entry of one of its tables (``field.lr``, ``planner_options.form``). VALUE
+    is read as a TOML value (``4``, ``0.02``, ``[5, 10]``, ``true``); anything
+    else is a string (``rig=interior``).
+
+    Returns:
+        dict in the layout of a suite's ``[defaults]``.
+    """
+    from .run import RunConfig
+
+    run_fields = {f.name for f in fields(RunConfig)} - set(JOB_KEYS)
+    out: dict = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise UserError(f"--set takes KEY=VALUE, got '{item}'")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        table, dot, name = key.partition(".")
+        if key in JOB_KEYS:
+            raise UserError(f"--set: '{key}' names the runs; choose them with --{key}s")
+        if dot and table in TABLE_KEYS and name:
+            out.setdefault(table, {})[name] = value
+        elif not dot and key in run_fields and key not in TABLE_KEYS:
+            out[key] = value
+        else:
+            raise UserError(f"--set: unknown setting '{key}'; use a run setting "
+                            f"({', '.join(sorted(run_fields - set(TABLE_KEYS)))}) "
+                            f"or field.OPTION / planner_options.OPTION")
+    return out
 
 
 @dataclass
@@ -136,15 +174,18 @@ class Job:
 
 
 def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=None, scenes=None,
-              author: bool = True) -> list[Job]:
+              author: bool = True, overrides: dict | None = None) -> list[Job]:
     """Author the mesh scenes and list every run of the suite.
 
-    A mesh scene is authored anew each time (``author``), so that edited scene
-    options take effect; authoring is deterministic, so unchanged scenes keep
-    their content hash and their finished runs. Without ``author`` (reports
-    only) the scenes are left as they are.
+    ``overrides`` (see :func:`parse_overrides`) win over the suite's and the
+    scenes' settings. Every job's settings are checked before anything is
+    written. A mesh scene is authored anew each time (``author``), so that
+    edited scene options take effect; authoring is deterministic, so unchanged
+    scenes keep their content hash and their finished runs. Without ``author``
+    (reports only) the scenes are left as they are.
     """
-    from .run import RunConfig
+    from .planners import make_planner
+    from .run import RunConfig, field_config
     from .scene import scene_from_mesh
 
     if profile not in PROFILES:
@@ -153,37 +194,45 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
     if unknown:
         raise UserError(f"no scene named {', '.join(sorted(unknown))} in the suite; it has "
                         f"{', '.join(sc.name for sc in suite.scenes)}")
+    overrides = overrides or {}
     prof = dict(PROFILES[profile])
     seeds = seeds or prof.pop("seeds")
     prof.pop("seeds", None)
-    jobs = []
+    jobs, meshes = [], {}
     for sc in suite.scenes:
         if scenes and sc.name not in scenes:
             continue
+        xml = sc.path
         if sc.kind == "mesh":
-            xml = out_dir / "scenes" / sc.name / f"{sc.name}.xml"
-            if author:
-                opts = dict(sc.scene_options)
-                if "color" in opts:
-                    opts["color"] = tuple(opts["color"])
-                scene_from_mesh(sc.path, xml, **opts)
-        else:
-            xml = sc.path
+            xml = meshes[sc.name] = out_dir / "scenes" / sc.name / f"{sc.name}.xml"
         for planner in planners or suite.planners:
             for seed in seeds:
-                # The profile sets the effort; the suite's defaults and each scene's own settings win.
-                settings = {"budget": 20, "eval_views": [5, 10, 15, 20], **prof, **suite.defaults,
-                            **sc.run_options}
-                # Field options merge too: a suite's `field` adds to the profile's.
-                settings["field"] = {**prof.get("field", {}), **suite.defaults.get("field", {}),
-                                     **sc.run_options.get("field", {})}
+                # The profile sets the effort; the suite's defaults, each scene's own
+                # settings and the command line's overrides win, in that order.
+                layers = (prof, suite.defaults, sc.run_options, overrides)
+                settings = {"budget": 20, "eval_views": [5, 10, 15, 20]}
+                for layer in layers:
+                    settings.update(layer)
+                # Tables merge key by key: a suite's `field` adds to the profile's.
+                for key in TABLE_KEYS:
+                    settings[key] = {k: v for layer in layers for k, v in layer.get(key, {}).items()}
                 try:
                     cfg = RunConfig(scene=str(xml), planner=planner, seed=int(seed), **settings)
                     cfg.validate()
                 except TypeError as exc:  # e.g. budget = "20"
                     raise UserError(f"scene '{sc.name}': a setting has the wrong type ({exc})") from None
+                # Options the runs would refuse, refused before anything is written.
+                make_planner(planner, **cfg.planner_options)
+                field_config(cfg)
                 jobs.append(Job(sc.name, planner, int(seed), str(xml), asdict(cfg),
                                 str(out_dir / "runs" / sc.name / f"{planner}-seed{seed}")))
+    if author:
+        for sc in suite.scenes:
+            if sc.name in meshes:
+                opts = dict(sc.scene_options)
+                if "color" in opts:
+                    opts["color"] = tuple(opts["color"])
+                scene_from_mesh(sc.path, meshes[sc.name], **opts)
     return jobs
 
 
@@ -210,11 +259,12 @@ def run_job(job: Job, threads: int | None = None) -> dict:
 
 
 def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, planners=None, scenes=None,
-              progress=True, log=print, report_only=False) -> dict:
+              progress=True, log=print, report_only=False, overrides=None) -> dict:
     """Run every job of a suite (resuming finished ones) and write the report; returns the summary.
 
     ``report_only`` runs nothing and reports the runs finished so far (safe
-    while another process is still running the suite)."""
+    while another process is still running the suite). ``overrides``
+    (:func:`parse_overrides`) change every run's settings."""
     import multiprocessing as mp
     import os
 
@@ -224,9 +274,10 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
     out_dir = Path(out_dir)
     if workers < 1:
         raise UserError(f"--workers must be at least 1, got {workers}")
-    jobs = plan_jobs(suite, out_dir, profile, seeds, planners, scenes, author=not report_only)
+    jobs = plan_jobs(suite, out_dir, profile, seeds, planners, scenes, author=not report_only,
+                     overrides=overrides)
     if report_only:
-        return write_report(suite, jobs, out_dir / "report", profile)
+        return write_report(suite, jobs, out_dir / "report", profile, overrides)
     threads = max(1, (os.cpu_count() or 1) // workers)
     bar = tqdm(total=len(jobs), desc=f"suite {suite.name}", unit="run", disable=not progress)
     if workers == 1:
@@ -245,7 +296,7 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
             pool.close()
             pool.join()
     bar.close()
-    return write_report(suite, jobs, out_dir / "report", profile)
+    return write_report(suite, jobs, out_dir / "report", profile, overrides)
 
 
 def _run_job_star(args):
@@ -263,6 +314,8 @@ def finished_record(job: Job) -> dict | None:
     is not this job's: it is not skipped (the run then refuses the folder) nor
     reported.
     """
+    from .run import same_config
+
     path = Path(job.out) / "run.json"
     if not path.is_file():
         return None
@@ -270,7 +323,7 @@ def finished_record(job: Job) -> dict | None:
         rec = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
         return None
-    if rec.get("finished") and rec.get("config") == json.loads(json.dumps(job.config)):
+    if rec.get("finished") and same_config(rec.get("config"), json.loads(json.dumps(job.config))):
         return rec
     return None
 
@@ -311,15 +364,18 @@ def table_views(jobs: list[Job]) -> tuple:
     return (rest[0], last) if rest else (last,)
 
 
-def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str) -> dict:
-    """Tables (Markdown, CSV, JSON) in the layout of the seed's Tables I and III, and plots."""
+def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, overrides=None) -> dict:
+    """Tables (Markdown, CSV, JSON) in the layout of the seed's Tables I and III, and plots.
+
+    ``overrides`` (the command line's ``--set``) are recorded in ``results.json``."""
     from .report import plot_metrics
 
     data = collect(jobs)
     scenes = [s.name for s in suite.scenes if s.name in data]
     planners = [p for p in dict.fromkeys(j.planner for j in jobs)]
     views = table_views(jobs)
-    summary = {"suite": suite.name, "profile": profile, "table_views": list(views), "cells": []}
+    summary = {"suite": suite.name, "profile": profile, "overrides": overrides or {},
+               "table_views": list(views), "cells": []}
     for scene in scenes:
         for planner in planners:
             recs = data[scene].get(planner, [])

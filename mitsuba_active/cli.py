@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import json
+import re
 import shutil
 import sys
 import warnings
@@ -266,29 +267,37 @@ def export(run_dir, out):
 @main.command()
 @click.argument("suite", type=click.Path(dir_okay=False))
 @click.option("--out", "out", type=click.Path(file_okay=False), default=None,
-              help="Suite folder [bench/SUITE-PROFILE]; finished runs there are kept and skipped.")
+              help="Suite folder [bench/SUITE-PROFILE, plus each --set]; finished runs there are kept and skipped.")
 @click.option("--profile", type=click.Choice(["quick", "full"]), default="quick", show_default=True,
               help="quick: small images and few steps, one seed; full: paper-like settings, five seeds.")
 @click.option("--workers", type=int, default=1, show_default=True, help="Parallel worker processes.")
 @click.option("--seeds", default=None, help="Comma-separated seeds [the profile's].")
 @click.option("--planners", default=None, help="Comma-separated planners [the suite's].")
 @click.option("--scenes", default=None, help="Comma-separated scene names [all].")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+              help="A run setting over the suite's, for every run (repeatable): e.g. ensemble=4, "
+                   "field.lr=0.02, planner_options.form=log. Use another --out for each variant.")
 @click.option("--report-only", is_flag=True,
               help="Run nothing: write the tables and plots of the runs finished so far.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @_one_line_errors
-def bench(suite, out, profile, workers, seeds, planners, scenes, report_only, quiet):
+def bench(suite, out, profile, workers, seeds, planners, scenes, overrides, report_only, quiet):
     """Run a benchmark SUITE (TOML): scenes x planners x seeds; write tables and plots."""
-    from .bench import run_suite
+    from .bench import parse_overrides, run_suite
 
     split = lambda s: [x.strip() for x in s.split(",") if x.strip()] if s else None  # noqa: E731
     try:
         seed_list = [int(x) for x in split(seeds)] if seeds else None
     except ValueError:
         raise UserError(f"--seeds takes comma-separated integers, got '{seeds}'") from None
-    out = Path(out) if out else Path("bench") / f"{Path(suite).stem}-{profile}"
+    if not out:
+        # Each variant of a suite gets a folder of its own: a folder's finished
+        # runs are kept only when their settings match.
+        tag = "".join("-" + re.sub(r"[^A-Za-z0-9._=-]", "_", o) for o in overrides)
+        out = Path("bench") / f"{Path(suite).stem}-{profile}{tag}"
+    out = Path(out)
     summary = run_suite(suite, out, profile, workers, seed_list, split(planners), split(scenes),
-                        progress=not quiet, report_only=report_only)
+                        progress=not quiet, report_only=report_only, overrides=parse_overrides(overrides))
     if not summary["cells"]:
         click.echo(f"note: no finished runs in {out} yet", err=True)
     click.echo(f"tables and plots in {out / 'report'}")

@@ -156,17 +156,38 @@ PLANNER_INIT_SCALE = 2.0
 INTERIOR_DISTANCE_WEIGHT = 10.0
 
 
-def make_ensemble(source, cfg: RunConfig, n_members: int, seed: int, planner: bool = True):
-    """The planner's ensemble (``planner=True``) or an evaluation field, configured from ``cfg``."""
-    from .field import Ensemble, FieldConfig
+def same_config(recorded, current: dict) -> bool:
+    """Whether a run record's config (a dict from run.json) has the settings of
+    ``current``. Scene paths compare as resolved paths: a relative and an
+    absolute path to one scene are the same setting (its content is checked
+    separately, by hash)."""
+    def normal(config):
+        if config.get("scene"):
+            config = {**config, "scene": str(Path(config["scene"]).resolve())}
+        return config
+
+    return isinstance(recorded, dict) and normal(recorded) == normal(current)
+
+
+def field_config(cfg: RunConfig, planner: bool = True):
+    """The :class:`~mitsuba_active.field.FieldConfig` of the planner's ensemble
+    (``planner=True``) or of an evaluation field; UserError on unknown options."""
+    from .field import FieldConfig
 
     base = {"distance_weight": cfg.distance_weight, **SPARSE_VIEW_FIELD}
     if planner:
         base["init_scale"] = PLANNER_INIT_SCALE
     try:
-        config = FieldConfig(**{**base, **cfg.field})
+        return FieldConfig(**{**base, **cfg.field})
     except TypeError as exc:
         raise UserError(f"unknown field option: {exc}") from None
+
+
+def make_ensemble(source, cfg: RunConfig, n_members: int, seed: int, planner: bool = True):
+    """The planner's ensemble (``planner=True``) or an evaluation field, configured from ``cfg``."""
+    from .field import Ensemble
+
+    config = field_config(cfg, planner)
     if config.empty_weight > 0 and not isinstance(source, SceneSource):
         # A dataset's mask marks where the distance is known, not which rays hit nothing.
         raise UserError("the empty-ray loss (empty_weight) needs rendered ground truth: a dataset "
@@ -261,7 +282,7 @@ class Run:
                 rec = json.loads(self.record_path.read_text())
             except (OSError, json.JSONDecodeError) as exc:
                 raise UserError(f"{self.record_path} is damaged ({exc}); remove it to start over") from None
-            if rec.get("config") != self._config_dict():
+            if not same_config(rec.get("config"), self._config_dict()):
                 raise UserError(f"{self.out} holds a run with other settings; choose another --out folder")
             if (rec.get("content_hash") != self._content_hash()
                     or rec.get("candidates") != [c.to_dict() for c in self.source.candidates]

@@ -8,6 +8,7 @@ import pytest
 from click.testing import CliRunner
 
 from mitsuba_active.cli import main
+from mitsuba_active.errors import UserError
 
 
 def run_cli(*args):
@@ -166,6 +167,32 @@ def test_benchmark_scripts_refuse_bad_field_options(script, args, message):
     assert proc.returncode == 2 and message in proc.stderr
     # argparse's usage line, then the error as the one last line; no traceback.
     assert "Traceback" not in proc.stderr and message in proc.stderr.strip().splitlines()[-1]
+
+
+@pytest.mark.parametrize("options, message", [
+    (dict(lr=-0.01), "lr must be > 0"),
+    (dict(lr=float("nan")), "lr must be a finite number"),
+    (dict(lr="fast"), "lr must be a finite number"),
+    (dict(n_levels=True), "n_levels must be a finite number"),
+    (dict(beta_2=1.0), "beta_1 and beta_2 must be in"),
+    (dict(init_scale=-1.0), "init_scale must be >= 0"),
+])
+def test_field_options_out_of_range(options, message):
+    from mitsuba_active.field import FieldConfig
+
+    with pytest.raises(UserError, match=message):
+        FieldConfig(**options)
+
+
+def test_bench_set_errors_are_one_line(tmp_path):
+    from tests.conftest import REPO
+
+    suite = REPO / "benchmarks" / "suites" / "shared.toml"
+    for item, needle in (("ensemble=0", "at least one member"), ("field.lr=-1", "lr must be > 0"),
+                         ("seed=3", "--seeds")):
+        code, text = run_cli("bench", suite, "--scenes", "spot", "--out", tmp_path / "b", "--set", item)
+        assert_one_line_error(code, text, needle)
+        assert not (tmp_path / "b").exists()
 
 
 def test_unwritable_output_is_one_line(tmp_path, shared_data):

@@ -1,4 +1,5 @@
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -220,6 +221,74 @@ def test_finished_runs_count_only_with_the_jobs_settings(tmp_path, shared_data):
     # The same folder after the suite's settings changed: neither skipped nor reported.
     rec_path.write_text(json.dumps({**rec, "config": {**job.config, "budget": 12}}))
     assert finished_record(job) is None and collect([job]) == {}
+
+
+def test_finished_runs_match_with_a_relative_or_absolute_folder(tmp_path, shared_data, monkeypatch):
+    from mitsuba_active.bench import finished_record, plan_jobs
+
+    path = tmp_path / "s.toml"
+    path.write_text("[[scenes]]\nname = 'ball'\nmesh = 'ball.ply'\n")
+    suite = load_suite(path)
+    monkeypatch.chdir(tmp_path)
+    rel = plan_jobs(suite, Path("out"), "quick", planners=["even"], author=False)[0]
+    absolute = plan_jobs(suite, tmp_path / "out", "quick", planners=["even"], author=False)[0]
+    assert rel.config["scene"] != absolute.config["scene"]  # the mesh scene's XML lives in the folder
+    rec_path = tmp_path / "out" / "runs" / "ball" / "even-seed0" / "run.json"
+    rec_path.parent.mkdir(parents=True)
+    rec_path.write_text(json.dumps({"finished": True, "config": rel.config, "metrics": []}))
+    assert finished_record(absolute) is not None
+    # Another scene file is another setting.
+    other = {**rel.config, "scene": "elsewhere/ball.xml"}
+    rec_path.write_text(json.dumps({"finished": True, "config": other, "metrics": []}))
+    assert finished_record(absolute) is None
+
+
+def test_set_overrides_parse_as_toml_values():
+    from mitsuba_active.bench import parse_overrides
+
+    got = parse_overrides(["ensemble=4", "field.lr=0.02", "field.n_samples = 16", "eval_views=[5, 10]",
+                           "planner_options.form=log", "rig=interior", "fov=40.5"])
+    assert got == {"ensemble": 4, "field": {"lr": 0.02, "n_samples": 16}, "eval_views": [5, 10],
+                   "planner_options": {"form": "log"}, "rig": "interior", "fov": 40.5}
+    assert isinstance(got["ensemble"], int) and isinstance(got["field"]["lr"], float)
+
+
+@pytest.mark.parametrize("item, message", [
+    ("ensemble", "KEY=VALUE"),
+    ("speed=3", "unknown setting 'speed'"),
+    ("seed=1", "choose them with --seeds"),
+    ("planner=rfe", "choose them with --planners"),
+    ("field=3", "unknown setting 'field'"),
+    ("budget.x=3", "unknown setting 'budget.x'"),
+])
+def test_bad_set_overrides(item, message):
+    from mitsuba_active.bench import parse_overrides
+
+    with pytest.raises(UserError, match=message):
+        parse_overrides([item])
+
+
+def test_set_overrides_win_over_the_suite_and_bad_ones_write_nothing(tmp_path, shared_data):
+    from mitsuba_active.bench import parse_overrides, plan_jobs
+
+    path = tmp_path / "s.toml"
+    path.write_text("[defaults]\nensemble = 3\nfield = { lr = 0.02 }\n"
+                    "[[scenes]]\nname = 'ball'\nmesh = 'ball.ply'\nensemble = 5\n"
+                    "planner_options = { form = 'log' }\n")
+    import trimesh
+
+    trimesh.creation.icosphere(subdivisions=1).export(tmp_path / "ball.ply")
+    suite = load_suite(path)
+    job = plan_jobs(suite, tmp_path / "out", "quick", planners=["rfe"],
+                    overrides=parse_overrides(["ensemble=4", "field.n_samples=8"]))[0]
+    assert job.config["ensemble"] == 4 and job.config["planner_options"] == {"form": "log"}
+    assert job.config["field"] == {"batch_rays": 2048, "n_samples": 8, "lr": 0.02}
+    assert (tmp_path / "out" / "scenes" / "ball" / "ball.xml").is_file()
+    for bad, message in ((["field.lr=-1"], "lr must be > 0"), (["field.bogus=1"], "unknown field option"),
+                         (["planner_options.lam=2"], "unknown option lam"), (["budget='x'"], "wrong type")):
+        with pytest.raises(UserError, match=message):
+            plan_jobs(suite, tmp_path / "bad", "quick", planners=["rfe"], overrides=parse_overrides(bad))
+        assert not (tmp_path / "bad").exists()
 
 
 def test_bundled_suite_is_well_formed():

@@ -7,6 +7,7 @@ Every option is a plain number so that the config round-trips through JSON
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 
@@ -115,8 +116,24 @@ class FieldConfig:
     def __post_init__(self):
         from ..errors import UserError
 
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise UserError(f"FieldConfig.{f.name} must be a finite number, got {value!r}")
         if self.n_features != 4:
             raise UserError("FieldConfig.n_features must be 4 (density + RGB)")
+        # Ranges where training means what the option says (a negative rate
+        # would climb the loss without any error).
+        positive = ("per_level_scale", "lr", "epsilon")
+        non_negative = ("init_scale", "bbox_padding", "lr_background", "distance_weight", "empty_weight")
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise UserError(f"FieldConfig.{name} must be > 0, got {getattr(self, name)}")
+        for name in non_negative:
+            if not getattr(self, name) >= 0:
+                raise UserError(f"FieldConfig.{name} must be >= 0, got {getattr(self, name)}")
+        if not (0 <= self.beta_1 < 1 and 0 <= self.beta_2 < 1):
+            raise UserError("FieldConfig.beta_1 and beta_2 must be in [0, 1)")
         for name in ("n_levels", "base_resolution", "log2_table_size", "n_samples",
                      "render_batch", "batch_rays"):
             if int(getattr(self, name)) < 1:

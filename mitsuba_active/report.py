@@ -82,3 +82,65 @@ def contact_sheet(images: list, labels: list[str], path, columns: int = 5) -> Pa
         fig.savefig(tmp, format="png")
     plt.close(fig)
     return Path(path)
+
+
+def up_vertical(points, up=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """World points (N, 3) in a frame whose third axis is ``up``: matplotlib's
+    3D axes draw their third axis vertically."""
+    from .cameras import up_frame
+
+    q = np.asarray(points, dtype=np.float64).reshape(-1, 3) @ up_frame(up)  # columns: side, up, side
+    return q[:, [0, 2, 1]] * np.array([1.0, -1.0, 1.0])  # keep the frame right-handed
+
+
+def plot_views(candidates, captured, heldout, bbox_min, bbox_max, path, up=(0.0, 1.0, 0.0),
+               initial: int = 0, title: str = "") -> Path:
+    """Where the cameras are: a 3D plot of camera positions, ``up`` vertical.
+
+    Candidates are grey dots, held-out views blue crosses, and captured views are
+    coloured by capture order (the first ``initial`` ones, chosen at random, as
+    squares), each with its capture number and a short line along its viewing
+    direction; the scene's bounding box is a wireframe.
+
+    Args:
+        candidates, heldout: :class:`~mitsuba_active.cameras.Camera` lists.
+        captured: candidate indices in capture order (repeats allowed).
+        bbox_min, bbox_max: (3,) scene bounds in scene units.
+    """
+    plt = _plt()
+    pos = up_vertical([c.position for c in candidates], up)
+    fwd = up_vertical([c.forward for c in candidates], up)
+    held = up_vertical([c.position for c in heldout], up) if heldout else np.zeros((0, 3))
+    lo, hi = np.asarray(bbox_min, dtype=np.float64), np.asarray(bbox_max, dtype=np.float64)
+    corners = up_vertical([[(lo, hi)[i >> a & 1][a] for a in range(3)] for i in range(8)], up)
+    fig = plt.figure(figsize=(5.5, 5), dpi=110)
+    ax = fig.add_subplot(projection="3d")
+    for i in range(8):
+        for a in range(3):
+            j = i | (1 << a)
+            if j != i:
+                ax.plot(*corners[[i, j]].T, color="0.6", lw=0.8)
+    ax.scatter(*pos.T, s=6, color="0.7", label="candidates")
+    if len(held):
+        ax.scatter(*held.T, s=14, marker="x", color="tab:blue", label="held out")
+    everything = np.concatenate([pos, held, corners])
+    arrow = 0.08 * float(np.ptp(everything, axis=0).max())
+    colours = plt.get_cmap("viridis")(np.linspace(0.0, 1.0, max(len(captured), 1)))
+    for n, idx in enumerate(captured):
+        p, f = pos[idx], fwd[idx]
+        ax.scatter(*p, s=28, color=colours[n], marker="s" if n < initial else "o", depthshade=False,
+                   label=("initial (random)" if n == 0 and initial else
+                          "captured (colour: order)" if n == initial else None))
+        ax.plot(*np.stack([p, p + arrow * f]).T, color=colours[n], lw=1.2)
+        ax.text(*(p + 0.3 * arrow), str(n), fontsize=7)
+    centre, half = everything.mean(axis=0), 0.5 * float(np.ptp(everything, axis=0).max())
+    ax.set(xlim=(centre[0] - half, centre[0] + half), ylim=(centre[1] - half, centre[1] + half),
+           zlim=(centre[2] - half, centre[2] + half), xticklabels=[], yticklabels=[], zticklabels=[])
+    ax.set_box_aspect((1, 1, 1))
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="upper left", fontsize=7)
+    fig.tight_layout()
+    with atomic_write(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+    return Path(path)

@@ -416,13 +416,18 @@ class Run:
 
     # -- results ------------------------------------------------------------
     def _write_outputs(self) -> None:
-        from .report import contact_sheet, plot_metrics
+        from .report import contact_sheet, plot_metrics, plot_views
 
         write_metrics_csv(self.out / "metrics.csv", self.record["metrics"])
         plot_metrics({self.cfg.planner: self.record["metrics"]}, self.out, title=self.source.name)
         sheet = [self.out / "views" / f"view_{n:03d}.png" for n in range(len(self.env.captured))]
         contact_sheet(sheet, [f"#{n} cand {i}" for n, i in enumerate(self.env.captured)],
                       self.out / "chosen_views.png")
+        scene = getattr(self.source, "scene", None)  # datasets have no up axis: Y-up
+        plot_views(self.source.candidates, self.env.captured, self.source.heldout, self.source.bbox_min,
+                   self.source.bbox_max, self.out / "camera_views.png", up=getattr(scene, "up", (0.0, 1.0, 0.0)),
+                   initial=min(self.cfg.initial_views, len(self.env.captured)),
+                   title=f"{self.source.name}: {self.cfg.planner}, {len(self.env.captured)} views")
         preds = getattr(self, "_last_preds", None)
         if preds is None:  # resumed after the last evaluation: score again to get images
             _, preds = evaluate(self.source, self.env.views, self.cfg)

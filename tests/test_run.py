@@ -60,7 +60,7 @@ def test_run_writes_its_outputs(source, tmp_path):
     assert rec["finished"] and len(rec["captured"]) == 4 and [m["views"] for m in rec["metrics"]] == [2, 4]
     assert len(rec["rounds"]) == 2 and all(len(r["scores"]) == 10 for r in rec["rounds"])
     for name in ("run.json", "metrics.csv", "psnr.png", "distance_error.png", "chosen_views.png",
-                 "views/view_003.png", "views/view_003.exr", "heldout/heldout_002_pred.png",
+                 "camera_views.png", "views/view_003.png", "views/view_003.exr", "heldout/heldout_002_pred.png",
                  "heldout/heldout_002_gt.exr", "heldout/heldout_002_variance.png"):
         assert (out / name).is_file(), name
     assert (out / "metrics.csv").read_text().splitlines()[0].startswith("views,psnr,ssim,distance_error")

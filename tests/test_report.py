@@ -1,0 +1,23 @@
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from mitsuba_active.cameras import fibonacci_sphere
+from mitsuba_active.report import plot_views, up_vertical
+
+
+@pytest.mark.parametrize("up", [(0, 1, 0), (0, 0, 1), (1, 0, 0), (0, -1, 0)])
+def test_up_is_drawn_vertically_in_a_right_handed_frame(up):
+    basis = up_vertical(np.eye(3), up)  # rows: the images of the world axes
+    assert np.allclose(up_vertical([up], up), [[0, 0, 1]])
+    assert np.allclose(basis @ basis.T, np.eye(3)) and np.linalg.det(basis) == pytest.approx(1.0)
+
+
+def test_camera_plot_of_a_run_with_repeats(tmp_path):
+    cams = fibonacci_sphere(12, (0, 0, 0), 2.0)
+    path = plot_views(cams[:10], [3, 3, 7, 0], cams[10:], [-0.5] * 3, [0.5] * 3, tmp_path / "views.png",
+                      up=(0, 0, 1), initial=2, title="t")
+    image = iio.imread(path)
+    assert image.ndim == 3 and image.shape[0] > 100 and image.std() > 0
+    # Without held-out views or captures (a run that has not chosen anything yet).
+    assert plot_views(cams, [], [], [-0.5] * 3, [0.5] * 3, tmp_path / "empty.png").is_file()

@@ -86,6 +86,7 @@ def load_suite(path) -> Suite:
     """Parse and check a suite file; UserError on anything malformed."""
     from .planners import make_planner
     from .run import RunConfig
+    from .scene import SceneOptions
 
     path = Path(path)
     if not path.is_file():
@@ -114,8 +115,12 @@ def load_suite(path) -> Suite:
         if extra:
             raise UserError(f"{path}: scene '{name}' has unknown settings: {', '.join(sorted(extra))}")
         _check_tables(path, f"scene '{name}'", s)
-        scenes.append(SuiteScene(name, (path.parent / s[kind]).resolve(), kind,
-                                 {k: v for k, v in s.items() if k in SCENE_OPTIONS},
+        scene_options = {k: v for k, v in s.items() if k in SCENE_OPTIONS}
+        try:
+            SceneOptions(**scene_options)
+        except UserError as exc:
+            raise UserError(f"{path}: scene '{name}': {exc}") from None
+        scenes.append(SuiteScene(name, (path.parent / s[kind]).resolve(), kind, scene_options,
                                  {k: v for k, v in s.items() if k in run_fields}))
     if not scenes:
         raise UserError(f"{path}: the suite has no scenes")
@@ -171,6 +176,7 @@ class Job:
     scene_xml: str
     config: dict
     out: str
+    content_hash: str | None = None  #: of the scene as it is now (None: its XML is missing)
 
 
 def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=None, scenes=None,
@@ -186,7 +192,7 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
     """
     from .planners import make_planner
     from .run import RunConfig, field_config
-    from .scene import scene_from_mesh
+    from .scene import content_hash, scene_from_mesh
 
     if profile not in PROFILES:
         raise UserError(f"unknown profile '{profile}'; use quick or full")
@@ -196,8 +202,10 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                         f"{', '.join(sc.name for sc in suite.scenes)}")
     overrides = overrides or {}
     prof = dict(PROFILES[profile])
-    seeds = seeds or prof.pop("seeds")
-    prof.pop("seeds", None)
+    # A seed or planner named twice is one run, not two in one folder.
+    seeds = list(dict.fromkeys(seeds or prof["seeds"]))
+    planners = list(dict.fromkeys(planners or suite.planners))
+    prof.pop("seeds")
     jobs, meshes = [], {}
     for sc in suite.scenes:
         if scenes and sc.name not in scenes:
@@ -205,7 +213,7 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
         xml = sc.path
         if sc.kind == "mesh":
             xml = meshes[sc.name] = out_dir / "scenes" / sc.name / f"{sc.name}.xml"
-        for planner in planners or suite.planners:
+        for planner in planners:
             for seed in seeds:
                 # The profile sets the effort; the suite's defaults, each scene's own
                 # settings and the command line's overrides win, in that order.
@@ -219,20 +227,20 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                 try:
                     cfg = RunConfig(scene=str(xml), planner=planner, seed=int(seed), **settings)
                     cfg.validate()
-                except TypeError as exc:  # e.g. budget = "20"
-                    raise UserError(f"scene '{sc.name}': a setting has the wrong type ({exc})") from None
+                except UserError as exc:  # e.g. budget = "20"
+                    raise UserError(f"scene '{sc.name}': {exc}") from None
                 # Options the runs would refuse, refused before anything is written.
-                make_planner(planner, **cfg.planner_options)
+                make_planner(planner, **cfg.planner_options).check_ensemble_size(cfg.ensemble)
                 field_config(cfg)
                 jobs.append(Job(sc.name, planner, int(seed), str(xml), asdict(cfg),
                                 str(out_dir / "runs" / sc.name / f"{planner}-seed{seed}")))
     if author:
         for sc in suite.scenes:
             if sc.name in meshes:
-                opts = dict(sc.scene_options)
-                if "color" in opts:
-                    opts["color"] = tuple(opts["color"])
-                scene_from_mesh(sc.path, meshes[sc.name], **opts)
+                scene_from_mesh(sc.path, meshes[sc.name], **sc.scene_options)
+    hashes = {xml: content_hash(Path(xml)) if Path(xml).is_file() else None for xml in {j.scene_xml for j in jobs}}
+    for job in jobs:
+        job.content_hash = hashes[job.scene_xml]
     return jobs
 
 
@@ -323,9 +331,12 @@ def finished_record(job: Job) -> dict | None:
         rec = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
         return None
-    if rec.get("finished") and same_config(rec.get("config"), json.loads(json.dumps(job.config))):
-        return rec
-    return None
+    if not isinstance(rec, dict) or not rec.get("finished"):
+        return None
+    if job.content_hash is not None and rec.get("content_hash") != job.content_hash:
+        return None  # the scene changed since
+    current = json.loads(json.dumps(job.config))
+    return rec if same_config(rec.get("config"), current, compare_scene=job.content_hash is None) else None
 
 
 def collect(jobs: list[Job]) -> dict:

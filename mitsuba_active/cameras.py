@@ -202,15 +202,25 @@ def hemisphere(n, center, radius, fov=40.0, width=64, height=64, offset=0.0, up=
     return _cameras_around(center, radius, dirs, up, fov, width, height, near, far)
 
 
+#: Degrees a ring of :func:`rings` rises per unit of ``offset``.
+RING_OFFSET_ELEVATION = 15.0
+
+
 def rings(n, center, radius, fov=40.0, width=64, height=64, offset=0.0, up=(0, 1, 0),
           elevations=(-20.0, 15.0, 45.0), near=1e-3, far=1e4):
-    """``n`` cameras on rings at the given elevations (degrees) around the ``up`` axis."""
+    """``n`` cameras on rings at the given elevations (degrees) around the ``up`` axis.
+
+    ``offset`` turns each ring by that fraction of its spacing and raises it by
+    ``RING_OFFSET_ELEVATION * offset`` degrees: rigs with different offsets
+    (candidates at 0, held-out views at 0.5) then never share a camera,
+    whatever their counts.
+    """
     _check_count(n)
     k = len(elevations)
     counts = [n // k + (1 if j < n % k else 0) for j in range(k)]
     dirs = []
     for j, (elev, m) in enumerate(zip(elevations, counts)):
-        e = math.radians(elev)
+        e = math.radians(elev + RING_OFFSET_ELEVATION * offset)
         az = 2 * math.pi * (np.arange(m) + 0.5 * offset + 0.25 * j) / max(m, 1)
         dirs += [[math.cos(e) * math.cos(a), math.sin(e), math.cos(e) * math.sin(a)] for a in az]
     return _cameras_around(center, radius, np.array(dirs), up, fov, width, height, near, far)

@@ -201,7 +201,7 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     """
     from .planners import make_planner
     from .run import RunConfig, default_out_dir
-    from .scene import MESH_SUFFIXES, scene_from_mesh
+    from .scene import MESH_SUFFIXES
 
     scene_path = str(scene_path or BUNDLED_SCENE)
     options = {"form": score_form} if planner == "rfe" else {}
@@ -221,8 +221,7 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     created = not out.exists()
     try:
         if Path(scene_path).suffix.lower() in MESH_SUFFIXES:
-            scene_path = str(scene_from_mesh(scene_path, out / "scene" / f"{Path(scene_path).stem}.xml"))
-            cfg.scene = scene_path
+            scene_path = cfg.scene = _author_into_run(scene_path, out)
         record = _plan(cfg, scene_path, out, quiet)
     except BaseException:
         # Without run.json there is nothing to resume: leave no half-made folder behind.
@@ -232,6 +231,30 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     rows = ", ".join(f"{m['views']}: {m['psnr']:.2f} dB" for m in record["metrics"])
     click.echo(f"held-out PSNR by views captured: {rows}")
     click.echo(f"results in {out}")
+
+
+def _author_into_run(mesh, out: Path) -> str:
+    """Author the scene of a mesh in ``OUT/scene``; returns its XML path.
+
+    The scene is made in a temporary folder first: an existing run's scene is
+    never overwritten, so a run folder holding another scene is refused as it is.
+    """
+    import tempfile
+
+    from .scene import content_hash, scene_from_mesh
+
+    target = out / "scene" / f"{Path(mesh).stem}.xml"
+    with tempfile.TemporaryDirectory(prefix="mitsuba-active-scene-") as tmp:
+        fresh = scene_from_mesh(mesh, Path(tmp) / target.name)
+        if target.is_file() and content_hash(target) == content_hash(fresh):
+            return str(target)  # authoring is deterministic: this run's own scene
+        if (out / "run.json").is_file():
+            raise UserError(f"{out} holds a run of another scene; choose another --out folder")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        # The XML lands last, as in scene_from_mesh.
+        for f in sorted(Path(tmp).iterdir(), key=lambda f: f.name == target.name):
+            shutil.move(str(f), target.parent / f.name)
+    return str(target)
 
 
 def _plan(cfg, scene_path: str, out: Path, quiet: bool) -> dict:

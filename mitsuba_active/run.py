@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import numbers
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -82,8 +83,39 @@ class RunConfig:
     distance_weight: float = 0.0
     field: dict = field(default_factory=dict)
 
+    #: Settings that are whole numbers, and those that are numbers (None: unset).
+    WHOLE = ("budget", "initial_views", "ensemble", "batch", "seed", "resolution", "candidates", "heldout",
+             "spp", "rays_per_candidate", "initial_steps", "steps_per_view", "eval_steps")
+    NUMBERS = ("distance_weight", "fov")
+
+    def _check_types(self) -> None:
+        def whole(v):
+            return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+
+        def number(v):
+            return isinstance(v, numbers.Real) and not isinstance(v, bool)
+
+        for name in self.WHOLE + ("downscale",):
+            value = getattr(self, name)
+            if not whole(value) and not (name == "downscale" and value is None):
+                raise UserError(f"{name} must be a whole number, got {value!r}")
+        for name in self.NUMBERS:
+            value = getattr(self, name)
+            if not number(value) and not (name == "fov" and value is None):
+                raise UserError(f"{name} must be a number, got {value!r}")
+        if not isinstance(self.eval_views, (list, tuple)) or not all(whole(v) for v in self.eval_views):
+            raise UserError(f"eval_views must be a list of view counts, got {self.eval_views!r}")
+        for name in ("planner_options", "field"):
+            if not isinstance(getattr(self, name), dict):
+                raise UserError(f"{name} must be a table of options, got {getattr(self, name)!r}")
+        if not isinstance(self.rig, str):
+            raise UserError(f"rig must be a name, got {self.rig!r}")
+
     def validate(self, n_candidates: int | None = None) -> None:
+        """UserError unless the settings make a run (types, ranges, the budget against ``n_candidates``)."""
+        self._check_types()
         checks = [
+            (0 <= self.seed < 2**31, f"the seed must be in [0, 2^31), got {self.seed}"),
             (self.budget > 0, f"the view budget must be positive, got {self.budget}"),
             (0 <= self.initial_views <= self.budget,
              f"initial views ({self.initial_views}) must be between 0 and the budget ({self.budget})"),
@@ -156,14 +188,20 @@ PLANNER_INIT_SCALE = 2.0
 INTERIOR_DISTANCE_WEIGHT = 10.0
 
 
-def same_config(recorded, current: dict) -> bool:
+def same_config(recorded, current: dict, compare_scene: bool = True) -> bool:
     """Whether a run record's config (a dict from run.json) has the settings of
-    ``current``. Scene paths compare as resolved paths: a relative and an
-    absolute path to one scene are the same setting (its content is checked
-    separately, by hash)."""
+    ``current``.
+
+    Scene paths compare as resolved paths, so that a relative and an absolute
+    path to one scene match. Callers that check the scene's content hash pass
+    ``compare_scene=False``: the same scene may then be named by any path (a
+    folder run from elsewhere, or moved).
+    """
     def normal(config):
-        if config.get("scene"):
-            config = {**config, "scene": str(Path(config["scene"]).resolve())}
+        config = dict(config)
+        scene = config.pop("scene", None)
+        if compare_scene:
+            config["scene"] = str(Path(scene).resolve()) if scene else scene
         return config
 
     return isinstance(recorded, dict) and normal(recorded) == normal(current)
@@ -273,16 +311,19 @@ class Run:
         return self.out / "run.json"
 
     def _config_dict(self) -> dict:
-        return json.loads(json.dumps(asdict(self.cfg)))
+        return json.loads(json.dumps(asdict(self.cfg), default=_json_default))
 
     def _load_or_start(self) -> bool:
         """Load an unfinished run from the folder; True when resuming."""
         if self.record_path.is_file():
             try:
                 rec = json.loads(self.record_path.read_text())
-            except (OSError, json.JSONDecodeError) as exc:
+            except (OSError, ValueError) as exc:  # ValueError: not JSON, or not text
                 raise UserError(f"{self.record_path} is damaged ({exc}); remove it to start over") from None
-            if not same_config(rec.get("config"), self._config_dict()):
+            if not isinstance(rec, dict):
+                raise UserError(f"{self.record_path} is not a run record; remove it to start over")
+            # Scenes are compared by content below; datasets, which have none, by path.
+            if not same_config(rec.get("config"), self._config_dict(), compare_scene=self._content_hash() is None):
                 raise UserError(f"{self.out} holds a run with other settings; choose another --out folder")
             if (rec.get("content_hash") != self._content_hash()
                     or rec.get("candidates") != [c.to_dict() for c in self.source.candidates]

@@ -8,7 +8,10 @@ The XML is plain Mitsuba 3 and loads with ``mitsuba.load_file`` alone.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
+import math
+import numbers
 import os
 import shutil
 import struct
@@ -55,6 +58,29 @@ class SceneOptions:
     point_lights: int = 0
     floor: bool = False
     max_depth: int = 6
+
+    def __post_init__(self):
+        def number(v):
+            return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+
+        if self.up not in ("y", "z"):
+            raise UserError(f"the up axis must be 'y' or 'z', got {self.up!r}")
+        color = self.color
+        if isinstance(color, str) or not hasattr(color, "__len__") or len(color) != 3 \
+                or not all(number(c) and 0.0 <= c <= 1.0 for c in color):
+            raise UserError(f"color must be three numbers in [0, 1], got {color!r}")
+        self.color = tuple(float(c) for c in color)
+        if not isinstance(self.texture, (str, os.PathLike, bool, type(None))):
+            raise UserError(f"texture must be an image path, true/false or unset, got {self.texture!r}")
+        if not number(self.env_radiance) or self.env_radiance < 0:
+            raise UserError(f"env_radiance must be a number >= 0, got {self.env_radiance!r}")
+        for name in ("sun", "floor"):
+            if not isinstance(getattr(self, name), bool):
+                raise UserError(f"{name} must be true or false, got {getattr(self, name)!r}")
+        for name, least in (("point_lights", 0), ("max_depth", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+                raise UserError(f"{name} must be a whole number >= {least}, got {value!r}")
 
 
 def load_mesh(path) -> "trimesh.Trimesh":
@@ -175,11 +201,7 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
     (with its texture image when it has one). Either every file is
     written, or none is. ``kwargs`` override fields of :class:`SceneOptions`.
     """
-    opts = options or SceneOptions()
-    for k, v in kwargs.items():
-        if not hasattr(opts, k):
-            raise TypeError(f"unknown scene option {k}")
-        setattr(opts, k, v)
+    opts = dataclasses.replace(options or SceneOptions(), **kwargs)  # checked by __post_init__
     mesh_path, out_xml = Path(mesh_path), Path(out_xml)
     mesh = load_mesh(mesh_path)
     vertices = normalise_vertices(mesh.vertices, opts.up)
@@ -307,6 +329,16 @@ def _referenced_files(xml_path: Path, seen=None, base: Path | None = None) -> li
     return files
 
 
+def content_hash(xml_path: Path, refs: list[Path] | None = None, **params) -> str:
+    """Hex digest of a scene XML, its ``$`` parameters and every file it references
+    (``refs``, found anew if None): what a run's ground truth depends on."""
+    h = hashlib.sha256(Path(xml_path).read_bytes())
+    h.update(repr(sorted(params.items())).encode())
+    for f in _referenced_files(Path(xml_path)) if refs is None else refs:
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
 def _load_mitsuba(xml_path: Path, **params):
     import mitsuba as mi
 
@@ -361,17 +393,14 @@ def load_scene(xml_path, **params) -> Scene:
     lo, hi = np.array(bbox.min, dtype=np.float64), np.array(bbox.max, dtype=np.float64)
     if not (np.isfinite(lo).all() and np.isfinite(hi).all()) or np.max(hi - lo) <= 0:
         raise UserError(f"scene {xml_path} has empty or unbounded geometry")
-    h = hashlib.sha256(xml_path.read_bytes())
-    h.update(repr(sorted(params.items())).encode())
-    for f in refs:
-        h.update(f.read_bytes())
+    digest = content_hash(xml_path, refs, **params)
     sensors = []
     for s in mi_scene.sensors():
-        params = mi.traverse(s)
-        if "x_fov" not in params.keys():
+        sensor_params = mi.traverse(s)
+        if "x_fov" not in sensor_params.keys():
             continue  # not a perspective camera
         size = s.film().crop_size()
-        fov = float(params["x_fov"][0])
+        fov = float(sensor_params["x_fov"][0])
         m = np.array(s.world_transform().matrix, dtype=np.float64).reshape(4, 4)
         sensors.append(Camera(m, fov, int(size[0]), int(size[1])))
     up = np.array([0.0, 1.0, 0.0])
@@ -379,5 +408,5 @@ def load_scene(xml_path, **params) -> Scene:
         cam_up = sensors[0].to_world[:3, 1]
         up = np.zeros(3)
         up[np.argmax(np.abs(cam_up))] = np.sign(cam_up[np.argmax(np.abs(cam_up))])
-    return Scene(xml_path, mi_scene, lo, hi, h.hexdigest(), _is_interior(mi_scene, lo, hi), sensors, up)
+    return Scene(xml_path, mi_scene, lo, hi, digest, _is_interior(mi_scene, lo, hi), sensors, up)
 

@@ -176,6 +176,7 @@ def test_benchmark_scripts_refuse_bad_field_options(script, args, message):
     (dict(n_levels=True), "n_levels must be a finite number"),
     (dict(beta_2=1.0), "beta_1 and beta_2 must be in"),
     (dict(init_scale=-1.0), "init_scale must be >= 0"),
+    (dict(n_levels=2.5), "n_levels must be a whole number"),
 ])
 def test_field_options_out_of_range(options, message):
     from mitsuba_active.field import FieldConfig
@@ -184,12 +185,87 @@ def test_field_options_out_of_range(options, message):
         FieldConfig(**options)
 
 
+@pytest.mark.parametrize("settings, message", [
+    (dict(budget=4.5), "budget must be a whole number"),
+    (dict(initial_views=True), "initial_views must be a whole number"),
+    (dict(eval_views=4), "eval_views must be a list"),
+    (dict(fov="wide"), "fov must be a number"),
+    (dict(seed=-1), "the seed must be in"),
+    (dict(field=3), "field must be a table"),
+])
+def test_run_settings_of_the_wrong_type(settings, message):
+    from mitsuba_active.run import RunConfig
+
+    with pytest.raises(UserError, match=message):
+        RunConfig(**settings).validate()
+
+
+@pytest.mark.parametrize("options, message", [
+    (dict(color="red"), "color must be three numbers"),
+    (dict(color=[1.5, 0, 0]), "color must be three numbers"),
+    (dict(point_lights=2.5), "point_lights must be a whole number"),
+    (dict(sun="yes"), "sun must be true or false"),
+    (dict(up="x"), "the up axis must be"),
+])
+def test_scene_options_of_the_wrong_type(options, message, tmp_path, shared_data):
+    from mitsuba_active.bench import load_suite
+    from mitsuba_active.scene import scene_from_mesh
+
+    with pytest.raises(UserError, match=message):
+        scene_from_mesh(shared_data / "meshes" / "suzanne.obj", tmp_path / "s" / "s.xml", **options)
+    assert not (tmp_path / "s").exists()
+    suite = tmp_path / "suite.toml"
+    toml = {k: (repr(v).lower() if isinstance(v, bool) else repr(v)) for k, v in options.items()}
+    suite.write_text("[[scenes]]\nname = 'a'\nmesh = 'x.obj'\n" + "".join(f"{k} = {v}\n" for k, v in toml.items()))
+    with pytest.raises(UserError, match=f"scene 'a': {message}"):
+        load_suite(suite)
+
+
+def test_a_run_folder_is_never_given_another_scene(tmp_path):
+    import hashlib
+
+    import trimesh
+
+    trimesh.creation.icosphere(subdivisions=2).export(tmp_path / "ball.ply")
+    (tmp_path / "other").mkdir()
+    trimesh.creation.box().export(tmp_path / "other" / "ball.ply")
+    out = tmp_path / "run"
+    tiny = ["--resolution", "8", "--spp", "1", "--candidates", "4", "--heldout", "1", "--budget", "2",
+            "--eval-steps", "5", "--steps-per-view", "2", "--planner", "even", "--quiet", "--out", out]
+    code, text = run_cli("plan", tmp_path / "ball.ply", *tiny)
+    assert code == 0, text
+
+    def files():
+        return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in (out / "scene").iterdir()}
+
+    before = files()
+    for mesh in (tmp_path / "other" / "ball.ply", tmp_path / "ball.ply"):
+        if mesh.parent == tmp_path:  # the same mesh again: the finished run is reported as it is
+            code, text = run_cli("plan", mesh, *tiny)
+            assert code == 0 and "already complete" in text, text
+        else:  # another mesh of the same name: refused, nothing overwritten
+            code, text = run_cli("plan", mesh, *tiny)
+            assert_one_line_error(code, text, "holds a run of another scene")
+        assert files() == before
+
+
+def test_a_run_record_that_is_not_one(spot_xml, tmp_path):
+    out = tmp_path / "o"
+    out.mkdir()
+    for content in ("[]", "\x00\xff not json"):
+        (out / "run.json").write_text(content)
+        code, text = run_cli("plan", spot_xml, "--out", out, "--resolution", "8", "--spp", "1",
+                             "--candidates", "4", "--heldout", "1", "--budget", "2", "--quiet")
+        assert_one_line_error(code, text, "run.json")
+
+
 def test_bench_set_errors_are_one_line(tmp_path):
     from tests.conftest import REPO
 
     suite = REPO / "benchmarks" / "suites" / "shared.toml"
     for item, needle in (("ensemble=0", "at least one member"), ("field.lr=-1", "lr must be > 0"),
-                         ("seed=3", "--seeds")):
+                         ("seed=3", "--seeds"), ("ensemble=1", "at least 2 members"),
+                         ("eval_views=4", "eval_views must be a list")):
         code, text = run_cli("bench", suite, "--scenes", "spot", "--out", tmp_path / "b", "--set", item)
         assert_one_line_error(code, text, needle)
         assert not (tmp_path / "b").exists()

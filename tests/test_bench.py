@@ -201,7 +201,7 @@ def test_jobs_merge_field_options_and_check_types(tmp_path, shared_data):
     job = plan_jobs(load_suite(path), tmp_path / "out", "quick", planners=["even"])[0]
     assert job.config["field"] == {**PROFILES["quick"]["field"], "lr": 0.02}
     path.write_text(f"[defaults]\nbudget = '20'\n[[scenes]]\nxml = '{xml}'\n")
-    with pytest.raises(UserError, match="wrong type"):
+    with pytest.raises(UserError, match="scene 'scene': budget must be a whole number, got '20'"):
         plan_jobs(load_suite(path), tmp_path / "out", "quick")
     with pytest.raises(UserError, match="no scene named nope"):
         plan_jobs(load_suite(path), tmp_path / "out", "quick", scenes=["nope"])
@@ -215,12 +215,19 @@ def test_finished_runs_count_only_with_the_jobs_settings(tmp_path, shared_data):
     job = plan_jobs(load_suite(path), tmp_path / "out", "quick", planners=["even"])[0]
     rec_path = tmp_path / "out" / "runs" / "simple" / "even-seed0" / "run.json"
     rec_path.parent.mkdir(parents=True)
-    rec = {"finished": True, "config": job.config, "metrics": []}
+    assert job.content_hash
+    rec = {"finished": True, "config": job.config, "content_hash": job.content_hash, "metrics": []}
     rec_path.write_text(json.dumps(rec))
     assert finished_record(job) is not None and collect([job]) == {"simple": {"even": [rec]}}
     # The same folder after the suite's settings changed: neither skipped nor reported.
     rec_path.write_text(json.dumps({**rec, "config": {**job.config, "budget": 12}}))
     assert finished_record(job) is None and collect([job]) == {}
+    # ... or after the scene changed (its files, not its settings).
+    rec_path.write_text(json.dumps({**rec, "content_hash": "0" * 64}))
+    assert finished_record(job) is None
+    # A scene named by another path is the same scene when its content is.
+    rec_path.write_text(json.dumps({**rec, "config": {**job.config, "scene": "moved/scene.xml"}}))
+    assert finished_record(job) is not None
 
 
 def test_finished_runs_match_with_a_relative_or_absolute_folder(tmp_path, shared_data, monkeypatch):
@@ -285,10 +292,21 @@ def test_set_overrides_win_over_the_suite_and_bad_ones_write_nothing(tmp_path, s
     assert job.config["field"] == {"batch_rays": 2048, "n_samples": 8, "lr": 0.02}
     assert (tmp_path / "out" / "scenes" / "ball" / "ball.xml").is_file()
     for bad, message in ((["field.lr=-1"], "lr must be > 0"), (["field.bogus=1"], "unknown field option"),
-                         (["planner_options.lam=2"], "unknown option lam"), (["budget='x'"], "wrong type")):
+                         (["planner_options.lam=2"], "unknown option lam"), (["budget='x'"], "budget must be a whole number")):
         with pytest.raises(UserError, match=message):
             plan_jobs(suite, tmp_path / "bad", "quick", planners=["rfe"], overrides=parse_overrides(bad))
         assert not (tmp_path / "bad").exists()
+
+
+def test_a_seed_or_planner_named_twice_is_one_run(tmp_path, shared_data):
+    from mitsuba_active.bench import plan_jobs
+
+    path = tmp_path / "s.toml"
+    path.write_text(f"planners = ['even', 'rfe', 'even']\n[[scenes]]\nxml = '{shared_data / 'mitsuba/simple/scene.xml'}'\n")
+    jobs = plan_jobs(load_suite(path), tmp_path / "out", "quick", seeds=[1, 0, 1])
+    assert [(j.planner, j.seed) for j in jobs] == [("even", 1), ("even", 0), ("rfe", 1), ("rfe", 0)]
+    jobs = plan_jobs(load_suite(path), tmp_path / "out", "quick", planners=["rfe", "rfe"], seeds=[2, 2])
+    assert [(j.planner, j.seed) for j in jobs] == [("rfe", 2)]
 
 
 def test_bundled_suite_is_well_formed():

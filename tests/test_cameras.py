@@ -37,6 +37,13 @@ def test_heldout_rig_is_disjoint_and_duplicates_are_caught(spot_xml):
         check_disjoint(cands, [cands[3]])
 
 
+@pytest.mark.parametrize("rig", [fibonacci_sphere, hemisphere, rings])
+def test_heldout_offset_never_reproduces_a_candidate(rig):
+    # Counts whose rings used to line up (e.g. 100 candidates, 5 held-out views).
+    for n_cand, n_held in ((100, 5), (100, 30), (60, 20), (34, 20), (9, 3)):
+        check_disjoint(rig(n_cand, (0, 0, 0), 2.0), rig(n_held, (0, 0, 0), 2.0, offset=0.5))
+
+
 def test_xml_rig_uses_the_scenes_own_sensor(shared_data):
     scene = load_scene(shared_data / "mitsuba/simple/scene.xml")
     cands, held = scene_rigs(scene, "xml", n_heldout=5, width=8)

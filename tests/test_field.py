@@ -228,6 +228,14 @@ def test_load_rejects_other_files(tmp_path):
     np.savez(bad, x=np.zeros(3))
     with pytest.raises(UserError):
         Ensemble.load(bad)
+    # A file cut short (a full disk, an interrupted copy) is one error too.
+    good = tmp_path / "good.npz"
+    Ensemble(*BOX, n_members=2, config=tiny_config(), seed=1).save(good)
+    data = good.read_bytes()
+    for size in (10, len(data) // 2, len(data) - 30):
+        bad.write_bytes(data[:size])
+        with pytest.raises(UserError, match="cannot read ensemble file"):
+            Ensemble.load(bad)
 
 
 def test_divergence_raises_user_error():

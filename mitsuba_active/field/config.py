@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import numbers
 from dataclasses import dataclass
 
 
@@ -118,8 +119,10 @@ class FieldConfig:
 
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
                 raise UserError(f"FieldConfig.{f.name} must be a finite number, got {value!r}")
+            if isinstance(f.default, int) and not isinstance(value, numbers.Integral):
+                raise UserError(f"FieldConfig.{f.name} must be a whole number, got {value!r}")
         if self.n_features != 4:
             raise UserError("FieldConfig.n_features must be 4 (density + RGB)")
         # Ranges where training means what the option says (a negative rate

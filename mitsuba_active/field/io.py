@@ -33,6 +33,8 @@ Training rays are not stored (call ``set_rays`` again after loading).
 from __future__ import annotations
 
 import json
+import zipfile
+import zlib
 from pathlib import Path
 
 import drjit as dr
@@ -82,33 +84,38 @@ def load_ensemble(cls, path):
     """Read an ensemble written by :func:`save_ensemble`."""
     path = Path(path)
     try:
-        z = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
+        with np.load(path, allow_pickle=False) as z:
+            ens = _ensemble_from(cls, z, path)
+    # A truncated or foreign file fails in the zip reader, the decompressor or a lookup.
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile, zlib.error) as exc:
         raise UserError(f"cannot read ensemble file {path}: {exc}") from None
-    with z:
-        if "format_version" not in z or str(z.get("kind", "")) != KIND:
-            raise UserError(f"{path} is not a mitsuba-active field ensemble")
-        version = int(z["format_version"])
-        if version != FORMAT_VERSION:
-            raise UserError(f"{path}: unsupported field format_version {version} "
-                            f"(this version reads {FORMAT_VERSION})")
-        cfg = FieldConfig.from_dict(json.loads(str(z["config"])))
-        ens = cls(z["bbox_min"], z["bbox_max"], n_members=int(z["n_members"]),
-                  config=cfg, seed=int(z["seed"]))
-        grid = z["grid"]
-        if grid.shape != (ens.n_members, ens.layout.n_entries, N_CHANNELS):
-            raise UserError(f"{path}: grid shape {grid.shape} does not match its config")
-        adam = None
-        if "adam_t" in z:
-            adam = {key: (int(z["adam_t"]), z[f"adam_m_{key}"], z[f"adam_v_{key}"])
-                    for key in ("grid", "background")}
-        ens._make_optimizer(grid, z["background"], adam)
-        ens._step = int(z["step"])
-        if "occupancy" in z:
-            G = int(cfg.occupancy_resolution)
-            if z["occupancy"].shape != (G, G, G):
-                raise UserError(f"{path}: occupancy shape {z['occupancy'].shape} does not match its config")
-            ens._set_occupancy(z["occupancy"].ravel())
-            ens._occupancy_age = int(z["occupancy_age"])
     dr.eval(ens._opt["grid"], ens._opt["background"])
+    return ens
+
+
+def _ensemble_from(cls, z, path):
+    if "format_version" not in z or str(z.get("kind", "")) != KIND:
+        raise UserError(f"{path} is not a mitsuba-active field ensemble")
+    version = int(z["format_version"])
+    if version != FORMAT_VERSION:
+        raise UserError(f"{path}: unsupported field format_version {version} "
+                        f"(this version reads {FORMAT_VERSION})")
+    cfg = FieldConfig.from_dict(json.loads(str(z["config"])))
+    ens = cls(z["bbox_min"], z["bbox_max"], n_members=int(z["n_members"]),
+              config=cfg, seed=int(z["seed"]))
+    grid = z["grid"]
+    if grid.shape != (ens.n_members, ens.layout.n_entries, N_CHANNELS):
+        raise UserError(f"{path}: grid shape {grid.shape} does not match its config")
+    adam = None
+    if "adam_t" in z:
+        adam = {key: (int(z["adam_t"]), z[f"adam_m_{key}"], z[f"adam_v_{key}"])
+                for key in ("grid", "background")}
+    ens._make_optimizer(grid, z["background"], adam)
+    ens._step = int(z["step"])
+    if "occupancy" in z:
+        G = int(cfg.occupancy_resolution)
+        if z["occupancy"].shape != (G, G, G):
+            raise UserError(f"{path}: occupancy shape {z['occupancy'].shape} does not match its config")
+        ens._set_occupancy(z["occupancy"].ravel())
+        ens._occupancy_age = int(z["occupancy_age"])
     return ens

@@ -13,8 +13,12 @@ __version__ = "0.1.0"
 try:
     set_variant()
 except UserError as exc:
-    # One line with the fix, not a traceback from deep inside Dr.Jit.
-    raise SystemExit(f"mitsuba-active: error: {exc}") from None
+    # One line with the fix, not a traceback from deep inside Dr.Jit; exit
+    # code 2, as for every other bad input.
+    import sys
+
+    print(f"mitsuba-active: error: {exc}", file=sys.stderr)
+    raise SystemExit(2) from None
 
 try:  # Mitsuba plugins (the "radiance_field" integrator): cheap, and never fatal
     from .plugins import register as _register_plugins

@@ -226,7 +226,8 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                     settings[key] = {k: v for layer in layers for k, v in layer.get(key, {}).items()}
                 try:
                     cfg = RunConfig(scene=str(xml), planner=planner, seed=int(seed), **settings)
-                    cfg.validate()
+                    # A generated rig has as many candidates as asked for; the XML's own, as it has.
+                    cfg.validate(None if cfg.rig == "xml" else cfg.candidates)
                 except UserError as exc:  # e.g. budget = "20"
                     raise UserError(f"scene '{sc.name}': {exc}") from None
                 # Options the runs would refuse, refused before anything is written.
@@ -378,7 +379,8 @@ def table_views(jobs: list[Job]) -> tuple:
 def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, overrides=None) -> dict:
     """Tables (Markdown, CSV, JSON) in the layout of the seed's Tables I and III, and plots.
 
-    ``overrides`` (the command line's ``--set``) are recorded in ``results.json``."""
+    ``overrides`` (the command line's ``--set``) are recorded in ``results.json``.
+    With no finished run, nothing is written (an earlier report stays)."""
     from .report import plot_metrics
 
     data = collect(jobs)
@@ -387,6 +389,8 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
     views = table_views(jobs)
     summary = {"suite": suite.name, "profile": profile, "overrides": overrides or {},
                "table_views": list(views), "cells": []}
+    if not data:  # nothing finished: keep whatever report is there
+        return summary
     for scene in scenes:
         for planner in planners:
             recs = data[scene].get(planner, [])

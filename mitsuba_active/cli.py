@@ -158,7 +158,7 @@ def _parse_counts(text: str) -> list[int]:
         raise UserError(f"--eval-views takes comma-separated view counts, got '{text}'") from None
     if not counts or min(counts) <= 0:
         raise UserError(f"--eval-views needs positive view counts, got '{text}'")
-    return counts
+    return sorted(set(counts))  # the same counts in another order are the same run
 
 
 @main.command()
@@ -204,6 +204,8 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     from .scene import MESH_SUFFIXES
 
     scene_path = str(scene_path or BUNDLED_SCENE)
+    if planner != "rfe" and score_form != "sum":
+        raise UserError(f"--score applies to the rfe planner only, not to {planner}")
     options = {"form": score_form} if planner == "rfe" else {}
     options.update(_parse_options(planner_option))
     make_planner(planner, **options)  # unknown planner: fail before any rendering
@@ -218,15 +220,18 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
         cfg.eval_steps = eval_steps
     cfg.validate()
     out = Path(out) if out else default_out_dir(scene_path, planner, seed)
-    created = not out.exists()
+    created, scene_dir_created = not out.exists(), not (out / "scene").exists()
     try:
         if Path(scene_path).suffix.lower() in MESH_SUFFIXES:
             scene_path = cfg.scene = _author_into_run(scene_path, out)
         record = _plan(cfg, scene_path, out, quiet)
     except BaseException:
-        # Without run.json there is nothing to resume: leave no half-made folder behind.
-        if created and out.is_dir() and not (out / "run.json").is_file():
-            shutil.rmtree(out, ignore_errors=True)
+        # Without run.json there is nothing to resume: leave nothing half-made behind.
+        if not (out / "run.json").is_file():
+            if created:
+                shutil.rmtree(out, ignore_errors=True)
+            elif scene_dir_created:  # an existing folder keeps what it held
+                shutil.rmtree(out / "scene", ignore_errors=True)
         raise
     rows = ", ".join(f"{m['views']}: {m['psnr']:.2f} dB" for m in record["metrics"])
     click.echo(f"held-out PSNR by views captured: {rows}")
@@ -267,6 +272,8 @@ def _plan(cfg, scene_path: str, out: Path, quiet: bool) -> dict:
 
     source = open_source(scene_path, rig=cfg.rig, n_candidates=cfg.candidates, n_heldout=cfg.heldout,
                          resolution=cfg.resolution, fov=cfg.fov, spp=cfg.spp, downscale=cfg.downscale)
+    if cfg.downscale is not None and isinstance(source, SceneSource):
+        raise UserError("--downscale applies to datasets; a scene renders at --resolution")
     if cfg.distance_weight == 0 and isinstance(source, SceneSource) and source.scene.interior:
         # Colour alone leaves a sparse-view field free to fill a room with fog (see README).
         click.echo(f"note: {Path(scene_path).name} is a room seen from inside, which fits far better "
@@ -322,8 +329,9 @@ def bench(suite, out, profile, workers, seeds, planners, scenes, overrides, repo
     summary = run_suite(suite, out, profile, workers, seed_list, split(planners), split(scenes),
                         progress=not quiet, report_only=report_only, overrides=parse_overrides(overrides))
     if not summary["cells"]:
-        click.echo(f"note: no finished runs in {out} yet", err=True)
-    click.echo(f"tables and plots in {out / 'report'}")
+        click.echo(f"note: no finished runs in {out} yet: no report written", err=True)
+    else:
+        click.echo(f"tables and plots in {out / 'report'}")
 
 
 if __name__ == "__main__":

@@ -461,6 +461,10 @@ def _centred_window(c: float, size: int, f: int) -> tuple[int, int]:
 
 def _intrinsics(keys: dict, w: int, h: int, where: str):
     """``(fx, fy, cx, cy)`` in full-resolution pixels; UserError for what a centred pinhole cannot model."""
+    for name in ("fl_x", "fl_y", "cx", "cy", "camera_angle_x", "camera_angle_y"):
+        value = keys[name]
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
+            raise UserError(f"{where}: {name} must be a number, got {value!r}")
     model = keys["camera_model"]
     if model is not None and str(model).upper() not in PINHOLE_MODELS:
         raise UserError(f"{where}: camera_model {model} is not supported; only pinhole cameras are")

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import camera_rays
+from .cameras import RIG_KINDS, camera_rays
 from .env import ActiveViewEnv, SceneSource
 from .errors import UserError
 from .groundtruth import View
@@ -122,6 +122,9 @@ class RunConfig:
             (self.ensemble >= 1, f"the ensemble needs at least one member, got {self.ensemble}"),
             (self.batch >= 1, f"the batch must be at least 1, got {self.batch}"),
             (self.resolution > 0, f"image resolution must be positive, got {self.resolution}"),
+            (self.spp > 0, f"samples per pixel must be positive, got {self.spp}"),
+            (self.fov is None or 0 < self.fov < 180, f"field of view must be in (0, 180) degrees, got {self.fov}"),
+            (self.rig in RIG_KINDS, f"unknown rig '{self.rig}'; choose one of {', '.join(RIG_KINDS)}"),
             (self.candidates >= 1, f"at least one candidate view is needed, got {self.candidates}"),
             (self.heldout >= 1, f"at least one held-out view is needed to evaluate on, got {self.heldout}"),
             (math.isfinite(self.distance_weight) and self.distance_weight >= 0,
@@ -188,15 +191,18 @@ PLANNER_INIT_SCALE = 2.0
 INTERIOR_DISTANCE_WEIGHT = 10.0
 
 
-def same_config(recorded, current: dict, compare_scene: bool = True) -> bool:
-    """Whether a run record's config (a dict from run.json) has the settings of
-    ``current``.
+def config_differences(recorded, current: dict, compare_scene: bool = True) -> list[str]:
+    """The settings in which a run record's config (a dict from run.json)
+    differs from ``current``, as ``"name: recorded -> current"`` lines.
 
     Scene paths compare as resolved paths, so that a relative and an absolute
     path to one scene match. Callers that check the scene's content hash pass
     ``compare_scene=False``: the same scene may then be named by any path (a
     folder run from elsewhere, or moved).
     """
+    if not isinstance(recorded, dict):
+        return ["config: missing"]
+
     def normal(config):
         config = dict(config)
         scene = config.pop("scene", None)
@@ -204,7 +210,13 @@ def same_config(recorded, current: dict, compare_scene: bool = True) -> bool:
             config["scene"] = str(Path(scene).resolve()) if scene else scene
         return config
 
-    return isinstance(recorded, dict) and normal(recorded) == normal(current)
+    old, new = normal(recorded), normal(current)
+    return [f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
+
+
+def same_config(recorded, current: dict, compare_scene: bool = True) -> bool:
+    """Whether a run record's config has the settings of ``current`` (see :func:`config_differences`)."""
+    return not config_differences(recorded, current, compare_scene)
 
 
 def field_config(cfg: RunConfig, planner: bool = True):
@@ -323,8 +335,12 @@ class Run:
             if not isinstance(rec, dict):
                 raise UserError(f"{self.record_path} is not a run record; remove it to start over")
             # Scenes are compared by content below; datasets, which have none, by path.
-            if not same_config(rec.get("config"), self._config_dict(), compare_scene=self._content_hash() is None):
-                raise UserError(f"{self.out} holds a run with other settings; choose another --out folder")
+            changed = config_differences(rec.get("config"), self._config_dict(),
+                                         compare_scene=self._content_hash() is None)
+            if changed:
+                more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
+                raise UserError(f"{self.out} holds a run with other settings ({'; '.join(changed[:3])}{more}); "
+                                "choose another --out folder")
             if (rec.get("content_hash") != self._content_hash()
                     or rec.get("candidates") != [c.to_dict() for c in self.source.candidates]
                     or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):

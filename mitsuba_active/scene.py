@@ -33,6 +33,10 @@ TEXTURE_NAMES = ("{stem}_texture.png", "{stem}_texture.jpg", "{stem}.png", "{ste
 # Authoring from meshes
 # ---------------------------------------------------------------------------
 
+#: Half width of the authored floor, in units of the normalised object (which spans 1).
+FLOOR_HALF_WIDTH = 0.8
+
+
 @dataclass
 class SceneOptions:
     """How :func:`scene_from_mesh` dresses a mesh.
@@ -187,8 +191,10 @@ def _scene_xml(mesh_file: str, texture_file: str | None, opts: SceneOptions) -> 
         lines.append(f'    <emitter type="point"><point name="position" x="{2 * np.cos(a):.4f}" y="2" '
                      f'z="{2 * np.sin(a):.4f}"/><rgb name="intensity" value="3"/></emitter>')
     if opts.floor:
+        # A platform a little wider than the object: a wider floor would widen the
+        # scene's bounds, and with them the camera rig and the fields' box.
         lines.append('    <shape type="rectangle" id="floor"><transform name="to_world"><rotate x="1" angle="-90"/>'
-                     '<scale value="2"/><translate y="-0.501"/></transform>'
+                     f'<scale value="{FLOOR_HALF_WIDTH}"/><translate y="-0.501"/></transform>'
                      '<bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>')
     lines.append("</scene>")
     return "\n".join(lines) + "\n"
@@ -202,6 +208,9 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
     written, or none is. ``kwargs`` override fields of :class:`SceneOptions`.
     """
     opts = dataclasses.replace(options or SceneOptions(), **kwargs)  # checked by __post_init__
+    if opts.env_radiance == 0 and not opts.sun and opts.point_lights == 0:
+        warnings.warn("the scene has no light (no environment, sun or point lights): every view renders black",
+                      stacklevel=2)
     mesh_path, out_xml = Path(mesh_path), Path(out_xml)
     mesh = load_mesh(mesh_path)
     vertices = normalise_vertices(mesh.vertices, opts.up)
@@ -213,7 +222,10 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
     if (out_dir / mesh_file).resolve() == mesh_path.resolve():
         mesh_file = f"{mesh_path.stem}_scene.ply"  # never overwrite the user's own mesh
     tex_file = None
-    staging = Path(tempfile.mkdtemp(prefix=".mitsuba-active-", dir=out_dir))
+    try:
+        staging = Path(tempfile.mkdtemp(prefix=".mitsuba-active-", dir=out_dir))
+    except OSError as exc:
+        raise UserError(f"cannot write into {out_dir}: {exc.strerror}") from None
     try:
         # Mitsuba's PLY reader takes v as given, OBJ/trimesh UVs have v up: flip.
         write_ply(staging / mesh_file, vertices, mesh.faces, None if uv is None else
@@ -225,7 +237,10 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
             tex_file = f"{mesh_path.stem}_texture{Path(texture).suffix.lower()}"
             shutil.copyfile(texture, staging / tex_file)
         (staging / out_xml.name).write_text(_scene_xml(mesh_file, tex_file, opts))
-        _load_mitsuba(staging / out_xml.name)  # validate before anything lands
+        try:  # validate before anything lands
+            _load_mitsuba(staging / out_xml.name)
+        except UserError as exc:  # name the files as the user will find them, not the staging folder
+            raise UserError(str(exc).replace(str(staging), str(out_dir))) from None
         # The XML lands last: an XML on disk always finds its mesh and texture.
         for f in sorted(staging.iterdir(), key=lambda f: f.name == out_xml.name):
             os.replace(f, out_dir / f.name)

@@ -299,6 +299,13 @@ def test_a_failed_plan_leaves_no_folder(tmp_path, shared_data):
                          "--budget", "2", "--heldout", "1", "--resolution", "8", "--spp", "1", "--quiet")
     assert_one_line_error(code, text, "larger than the number of candidate views (1)")
     assert not out.exists()
+    # A folder that was there already keeps what it held, and gets nothing more.
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    code, text = run_cli("plan", shared_data / "meshes" / "suzanne.obj", "--out", out, "--rig", "xml",
+                         "--budget", "2", "--heldout", "1", "--resolution", "8", "--spp", "1", "--quiet")
+    assert_one_line_error(code, text, "larger than the number of candidate views (1)")
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]
 
 
 def test_render_and_export_name_the_wrong_kind_of_input(tmp_path, shared_data, out):

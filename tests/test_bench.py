@@ -160,6 +160,10 @@ def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
     summary = run_suite(tiny_suite, out, "quick", seeds=[0, 1], progress=False, report_only=True)
     assert calls == [] and all(c["seeds"] == 1 for c in summary["cells"])
     assert not list(out.rglob("*seed1*"))
+    # With nothing finished (seed 2 alone) the report there stays as it was.
+    table = (report / "table_psnr.md").read_text()
+    summary = run_suite(tiny_suite, out, "quick", seeds=[2], progress=False, report_only=True)
+    assert summary["cells"] == [] and (report / "table_psnr.md").read_text() == table
 
 
 def test_suite_runs_in_worker_processes(tiny_suite, tmp_path):

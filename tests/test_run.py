@@ -155,7 +155,9 @@ def test_plan_cli_bad_inputs(spot_xml, tmp_path):
                          [["--planner-option", "form"], "NAME=VALUE"],
                          [["--planner", "even", "--planner-option", "lam=1"], "unknown option lam (it takes none)"],
                          [["--planner", "fisher", "--planner-option", "lam=abc"], "a number lam > 0"],
-                         [["--heldout", "0"], "held-out view"]):
+                         [["--heldout", "0"], "held-out view"],
+                         [["--planner", "even", "--score", "log"], "--score applies to the rfe planner only"],
+                         [["--downscale", "2"], "--downscale applies to datasets"]):
         res = runner.invoke(main, ["plan", str(spot_xml), "--candidates", "10", "--out", str(tmp_path / "o"),
                                    *args])
         assert res.exit_code == 2 and needle in res.output and "Traceback" not in res.output, res.output
@@ -208,6 +210,11 @@ def test_plan_command_end_to_end(spot_xml, tmp_path):
     assert not (out / "ensemble_002.npz").exists()
     res = CliRunner().invoke(main, ["export", str(out)])
     assert res.exit_code == 0 and (out / "export" / "transforms.json").is_file()
+    # The same counts in another order are the same run; other settings are named.
+    res = CliRunner().invoke(main, [*args, "--eval-views", "3,3"])
+    assert res.exit_code == 0 and "already complete" in res.output, res.output
+    res = CliRunner().invoke(main, [*args, "--budget", "4", "--seed", "5"])
+    assert res.exit_code == 2 and "other settings (budget: 3 -> 4; seed: 0 -> 5)" in res.output, res.output
 
 
 def test_plan_takes_a_mesh(shared_data, tmp_path):

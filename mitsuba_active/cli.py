@@ -119,17 +119,24 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
             raise UserError(f"--views must be positive, got {views}")
         cams = cams[:views]
     out = Path(out)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     records = []
-    for i, cam in enumerate(tqdm(cams, desc="rendering", unit="view")):
-        v = source.groundtruth.render(cam)
-        stem = f"{split[:4]}_{i:03d}"
-        write_exr(out / f"{stem}.exr", {"RGB": srgb_to_linear(v.rgb), "Z": v.distance})
-        write_png(out / f"{stem}.png", v.rgb)
-        write_png(out / f"{stem}_distance.png", colorize(v.distance, v.mask))
-        records.append({"file": f"{stem}.png", **cam.to_dict(), "intrinsics": cam.intrinsics().tolist()})
-    with atomic_write(out / "cameras.json") as tmp:
-        tmp.write_text(json.dumps({"scene": str(source.scene.path), "split": split, "views": records}, indent=1))
+    try:
+        for i, cam in enumerate(tqdm(cams, desc="rendering", unit="view")):
+            v = source.groundtruth.render(cam)
+            stem = f"{split[:4]}_{i:03d}"
+            write_exr(out / f"{stem}.exr", {"RGB": srgb_to_linear(v.rgb), "Z": v.distance})
+            write_png(out / f"{stem}.png", v.rgb)
+            write_png(out / f"{stem}_distance.png", colorize(v.distance, v.mask))
+            records.append({"file": f"{stem}.png", **cam.to_dict(), "intrinsics": cam.intrinsics().tolist()})
+        with atomic_write(out / "cameras.json") as tmp:
+            tmp.write_text(json.dumps({"scene": str(source.scene.path), "split": split, "views": records},
+                                      indent=1))
+    except BaseException:
+        if created:  # views without their cameras.json are no use to anyone
+            shutil.rmtree(out, ignore_errors=True)
+        raise
     click.echo(f"wrote {len(cams)} views to {out}")
 
 

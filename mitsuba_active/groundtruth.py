@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import Camera, sensor_rays_dr
+from .errors import UserError
 from .imageio_utils import linear_to_srgb, read_exr, write_exr
 
 CACHE_VERSION = "1"
@@ -89,8 +90,6 @@ class GroundTruth:
 
     def __init__(self, scene, spp: int = 64, cache_dir=None):
         if int(spp) <= 0:
-            from .errors import UserError
-
             raise UserError(f"samples per pixel must be positive, got {spp}")
         self.scene = scene
         self.spp = int(spp)
@@ -120,7 +119,11 @@ class GroundTruth:
         linear = render_rgb(self.scene.mi_scene, camera, self.spp, seed)
         distance = render_distance(self.scene.mi_scene, camera)
         if path is not None:
-            write_exr(path, {"RGB": linear, "Z": distance})
+            try:
+                write_exr(path, {"RGB": linear, "Z": distance})
+            except OSError as exc:
+                raise UserError(f"cannot write the ground-truth cache in {self.cache_dir} ({exc.strerror or exc}); "
+                                "set MITSUBA_ACTIVE_CACHE to a writable folder") from None
         return self._view(linear, distance, camera)
 
     @staticmethod

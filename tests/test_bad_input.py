@@ -249,6 +249,17 @@ def test_a_run_folder_is_never_given_another_scene(tmp_path):
         assert files() == before
 
 
+def test_unwritable_cache_is_one_line_and_leaves_no_views(spot_xml, tmp_path, monkeypatch):
+    blocker = tmp_path / "afile"
+    blocker.write_text("")
+    monkeypatch.setenv("MITSUBA_ACTIVE_CACHE", str(blocker / "cache"))
+    out = tmp_path / "views"
+    code, text = run_cli("render", spot_xml, "-o", out, "--resolution", "8", "--spp", "1", "--candidates", "2",
+                         "--heldout", "1")
+    assert_one_line_error(code, text, "MITSUBA_ACTIVE_CACHE")
+    assert not out.exists()
+
+
 def test_a_run_record_that_is_not_one(spot_xml, tmp_path):
     out = tmp_path / "o"
     out.mkdir()

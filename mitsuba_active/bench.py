@@ -120,6 +120,8 @@ def load_suite(path) -> Suite:
             SceneOptions(**scene_options)
         except UserError as exc:
             raise UserError(f"{path}: scene '{name}': {exc}") from None
+        if not (path.parent / s[kind]).is_file():  # before a suite authors or runs anything
+            raise UserError(f"{path}: scene '{name}': {kind} file not found: {path.parent / s[kind]}")
         scenes.append(SuiteScene(name, (path.parent / s[kind]).resolve(), kind, scene_options,
                                  {k: v for k, v in s.items() if k in run_fields}))
     if not scenes:
@@ -330,7 +332,7 @@ def finished_record(job: Job) -> dict | None:
         return None
     try:
         rec = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError):
+    except (OSError, ValueError):  # ValueError: not JSON, or not text
         return None
     if not isinstance(rec, dict) or not rec.get("finished"):
         return None

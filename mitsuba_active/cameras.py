@@ -170,6 +170,16 @@ def fibonacci_directions(n: int, offset: float = 0.0, y_min: float = -1.0, y_max
     return np.stack([r * np.cos(phi), y, r * np.sin(phi)], axis=1)
 
 
+def snapped_up(cameras) -> np.ndarray:
+    """The world axis (3,) closest to the cameras' mean up vector, with its sign:
+    the up axis of a scene or dataset as its cameras were set up (Y without cameras)."""
+    up = np.zeros(3)
+    mean = np.mean([c.to_world[:3, 1] for c in cameras], axis=0) if len(cameras) else np.array([0.0, 1.0, 0.0])
+    axis = int(np.argmax(np.abs(mean)))
+    up[axis] = 1.0 if mean[axis] >= 0 else -1.0
+    return up
+
+
 def up_frame(up=(0.0, 1.0, 0.0)) -> np.ndarray:
     """(3, 3) rotation whose second column is ``up``: maps a Y-up rig into a world with that up axis."""
     up = np.asarray(up, dtype=np.float64)

@@ -119,7 +119,7 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
             raise UserError(f"--views must be positive, got {views}")
         cams = cams[:views]
     out = Path(out)
-    created = not out.exists()
+    new = _new_entries(out)
     out.mkdir(parents=True, exist_ok=True)
     records = []
     try:
@@ -134,8 +134,7 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
             tmp.write_text(json.dumps({"scene": str(source.scene.path), "split": split, "views": records},
                                       indent=1))
     except BaseException:
-        if created:  # views without their cameras.json are no use to anyone
-            shutil.rmtree(out, ignore_errors=True)
+        _remove_new(out, *new)  # views without their cameras.json are no use to anyone
         raise
     click.echo(f"wrote {len(cams)} views to {out}")
 
@@ -165,7 +164,7 @@ def _parse_counts(text: str) -> list[int]:
         raise UserError(f"--eval-views takes comma-separated view counts, got '{text}'") from None
     if not counts or min(counts) <= 0:
         raise UserError(f"--eval-views needs positive view counts, got '{text}'")
-    return sorted(set(counts))  # the same counts in another order are the same run
+    return counts
 
 
 @main.command()
@@ -227,22 +226,40 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
         cfg.eval_steps = eval_steps
     cfg.validate()
     out = Path(out) if out else default_out_dir(scene_path, planner, seed)
-    created, scene_dir_created = not out.exists(), not (out / "scene").exists()
+    new = _new_entries(out)
     try:
         if Path(scene_path).suffix.lower() in MESH_SUFFIXES:
             scene_path = cfg.scene = _author_into_run(scene_path, out)
         record = _plan(cfg, scene_path, out, quiet)
     except BaseException:
-        # Without run.json there is nothing to resume: leave nothing half-made behind.
+        # Without run.json there is nothing to resume: leave nothing half-made
+        # behind (an existing folder keeps what it held).
         if not (out / "run.json").is_file():
-            if created:
-                shutil.rmtree(out, ignore_errors=True)
-            elif scene_dir_created:  # an existing folder keeps what it held
-                shutil.rmtree(out / "scene", ignore_errors=True)
+            _remove_new(out, *new)
         raise
     rows = ", ".join(f"{m['views']}: {m['psnr']:.2f} dB" for m in record["metrics"])
     click.echo(f"held-out PSNR by views captured: {rows}")
     click.echo(f"results in {out}")
+
+
+def _new_entries(out: Path):
+    """What a command may remove if it fails: ``(top, before)``, where ``top`` is
+    the first of ``out`` and its parents that does not exist yet (None if ``out``
+    exists) and ``before`` what ``out`` holds now."""
+    top, p = None, out.absolute()
+    while not p.exists():
+        top, p = p, p.parent
+    return top, (set(out.iterdir()) if top is None and out.is_dir() else set())
+
+
+def _remove_new(out: Path, top, before) -> None:
+    """Undo what a failed command wrote: the folders it created, or the entries
+    it added to a folder that was there."""
+    if top is not None:
+        shutil.rmtree(top, ignore_errors=True)
+    elif out.is_dir():
+        for p in set(out.iterdir()) - before:
+            shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
 
 
 def _author_into_run(mesh, out: Path) -> str:
@@ -256,6 +273,9 @@ def _author_into_run(mesh, out: Path) -> str:
     from .scene import content_hash, scene_from_mesh
 
     target = out / "scene" / f"{Path(mesh).stem}.xml"
+    if Path(mesh).resolve().parent == target.parent.resolve():
+        # The mesh lives where its scene goes: scene_from_mesh keeps it and names its copy apart.
+        return str(scene_from_mesh(mesh, target))
     with tempfile.TemporaryDirectory(prefix="mitsuba-active-scene-") as tmp:
         fresh = scene_from_mesh(mesh, Path(tmp) / target.name)
         if target.is_file() and content_hash(target) == content_hash(fresh):

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import RIG_KINDS, camera_rays
+from .cameras import RIG_KINDS, camera_rays, snapped_up
 from .env import ActiveViewEnv, SceneSource
 from .errors import UserError
 from .groundtruth import View
@@ -205,6 +205,8 @@ def config_differences(recorded, current: dict, compare_scene: bool = True) -> l
 
     def normal(config):
         config = dict(config)
+        if isinstance(config.get("eval_views"), list):  # the same counts in any order
+            config["eval_views"] = sorted(set(config["eval_views"]))
         scene = config.pop("scene", None)
         if compare_scene:
             config["scene"] = str(Path(scene).resolve()) if scene else scene
@@ -480,9 +482,11 @@ class Run:
         sheet = [self.out / "views" / f"view_{n:03d}.png" for n in range(len(self.env.captured))]
         contact_sheet(sheet, [f"#{n} cand {i}" for n, i in enumerate(self.env.captured)],
                       self.out / "chosen_views.png")
-        scene = getattr(self.source, "scene", None)  # datasets have no up axis: Y-up
+        scene = getattr(self.source, "scene", None)
+        # A dataset has no scene: its cameras' own up vectors tell which way is up.
+        up = scene.up if scene is not None else snapped_up(self.source.candidates)
         plot_views(self.source.candidates, self.env.captured, self.source.heldout, self.source.bbox_min,
-                   self.source.bbox_max, self.out / "camera_views.png", up=getattr(scene, "up", (0.0, 1.0, 0.0)),
+                   self.source.bbox_max, self.out / "camera_views.png", up=up,
                    initial=min(self.cfg.initial_views, len(self.env.captured)),
                    title=f"{self.source.name}: {self.cfg.planner}, {len(self.env.captured)} views")
         preds = getattr(self, "_last_preds", None)

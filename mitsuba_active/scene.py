@@ -37,6 +37,14 @@ TEXTURE_NAMES = ("{stem}_texture.png", "{stem}_texture.jpg", "{stem}.png", "{ste
 FLOOR_HALF_WIDTH = 0.8
 
 
+def finite(value) -> bool:
+    """Whether a number is finite as a float (a Python int may be too large for one)."""
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:
+        return False
+
+
 @dataclass
 class SceneOptions:
     """How :func:`scene_from_mesh` dresses a mesh.
@@ -65,7 +73,7 @@ class SceneOptions:
 
     def __post_init__(self):
         def number(v):
-            return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+            return isinstance(v, numbers.Real) and not isinstance(v, bool) and finite(v)
 
         if self.up not in ("y", "z"):
             raise UserError(f"the up axis must be 'y' or 'z', got {self.up!r}")
@@ -74,13 +82,15 @@ class SceneOptions:
                 or not all(number(c) and 0.0 <= c <= 1.0 for c in color):
             raise UserError(f"color must be three numbers in [0, 1], got {color!r}")
         self.color = tuple(float(c) for c in color)
-        if not isinstance(self.texture, (str, os.PathLike, bool, type(None))):
-            raise UserError(f"texture must be an image path, true/false or unset, got {self.texture!r}")
+        if self.texture is not False and not isinstance(self.texture, (str, os.PathLike, type(None))):
+            raise UserError(f"texture must be an image path, false (none) or unset (the mesh's own), "
+                            f"got {self.texture!r}")
         if not number(self.env_radiance) or self.env_radiance < 0:
             raise UserError(f"env_radiance must be a number >= 0, got {self.env_radiance!r}")
         for name in ("sun", "floor"):
-            if not isinstance(getattr(self, name), bool):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise UserError(f"{name} must be true or false, got {getattr(self, name)!r}")
+            setattr(self, name, bool(getattr(self, name)))
         for name, least in (("point_lights", 0), ("max_depth", 1)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
@@ -390,7 +400,7 @@ def load_scene(xml_path, **params) -> Scene:
     """
     import mitsuba as mi
 
-    from .cameras import Camera
+    from .cameras import Camera, snapped_up
 
     xml_path = Path(xml_path)
     if not xml_path.is_file():
@@ -418,10 +428,6 @@ def load_scene(xml_path, **params) -> Scene:
         fov = float(sensor_params["x_fov"][0])
         m = np.array(s.world_transform().matrix, dtype=np.float64).reshape(4, 4)
         sensors.append(Camera(m, fov, int(size[0]), int(size[1])))
-    up = np.array([0.0, 1.0, 0.0])
-    if sensors:
-        cam_up = sensors[0].to_world[:3, 1]
-        up = np.zeros(3)
-        up[np.argmax(np.abs(cam_up))] = np.sign(cam_up[np.argmax(np.abs(cam_up))])
+    up = snapped_up(sensors[:1])  # the first sensor's, as the scene's author set it up
     return Scene(xml_path, mi_scene, lo, hi, digest, _is_interior(mi_scene, lo, hi), sensors, up)
 

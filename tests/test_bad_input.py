@@ -177,6 +177,7 @@ def test_benchmark_scripts_refuse_bad_field_options(script, args, message):
     (dict(beta_2=1.0), "beta_1 and beta_2 must be in"),
     (dict(init_scale=-1.0), "init_scale must be >= 0"),
     (dict(n_levels=2.5), "n_levels must be a whole number"),
+    (dict(batch_rays=10**400), "batch_rays must be a finite number"),
 ])
 def test_field_options_out_of_range(options, message):
     from mitsuba_active.field import FieldConfig
@@ -206,6 +207,8 @@ def test_run_settings_of_the_wrong_type(settings, message):
     (dict(point_lights=2.5), "point_lights must be a whole number"),
     (dict(sun="yes"), "sun must be true or false"),
     (dict(up="x"), "the up axis must be"),
+    (dict(texture=True), "texture must be an image path"),
+    (dict(env_radiance=10**400), "env_radiance must be a number"),
 ])
 def test_scene_options_of_the_wrong_type(options, message, tmp_path, shared_data):
     from mitsuba_active.bench import load_suite
@@ -219,6 +222,22 @@ def test_scene_options_of_the_wrong_type(options, message, tmp_path, shared_data
     suite.write_text("[[scenes]]\nname = 'a'\nmesh = 'x.obj'\n" + "".join(f"{k} = {v}\n" for k, v in toml.items()))
     with pytest.raises(UserError, match=f"scene 'a': {message}"):
         load_suite(suite)
+
+
+def test_a_mesh_inside_the_run_folder_is_kept(tmp_path):
+    import hashlib
+
+    import trimesh
+
+    mesh = tmp_path / "run" / "scene" / "ball.ply"
+    mesh.parent.mkdir(parents=True)
+    trimesh.creation.icosphere(subdivisions=2).export(mesh)
+    digest = hashlib.sha256(mesh.read_bytes()).hexdigest()
+    code, text = run_cli("plan", mesh, "--out", tmp_path / "run", "--resolution", "8", "--spp", "1",
+                         "--candidates", "4", "--heldout", "1", "--budget", "2", "--eval-steps", "5",
+                         "--planner", "even", "--quiet")
+    assert code == 0, text
+    assert hashlib.sha256(mesh.read_bytes()).hexdigest() == digest
 
 
 def test_a_run_folder_is_never_given_another_scene(tmp_path):
@@ -253,18 +272,28 @@ def test_unwritable_cache_is_one_line_and_leaves_no_views(spot_xml, tmp_path, mo
     blocker = tmp_path / "afile"
     blocker.write_text("")
     monkeypatch.setenv("MITSUBA_ACTIVE_CACHE", str(blocker / "cache"))
-    out = tmp_path / "views"
+    out = tmp_path / "new" / "views"
     code, text = run_cli("render", spot_xml, "-o", out, "--resolution", "8", "--spp", "1", "--candidates", "2",
                          "--heldout", "1")
     assert_one_line_error(code, text, "MITSUBA_ACTIVE_CACHE")
-    assert not out.exists()
+    assert not (tmp_path / "new").exists()  # nor the parent it made
+    # A run that fails after capturing views leaves an existing folder as it was.
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    monkeypatch.setenv("MITSUBA_ACTIVE_CACHE", str(tmp_path / "cache"))
+    monkeypatch.setattr("mitsuba_active.run.Run._save_record", lambda self: (_ for _ in ()).throw(OSError(28, "full")))
+    code, text = run_cli("plan", spot_xml, "--out", out, "--resolution", "8", "--spp", "1", "--candidates", "4",
+                         "--heldout", "1", "--budget", "2", "--quiet")
+    assert_one_line_error(code, text, "full")
+    assert [p.name for p in out.iterdir()] == ["notes.txt"]
 
 
 def test_a_run_record_that_is_not_one(spot_xml, tmp_path):
     out = tmp_path / "o"
     out.mkdir()
-    for content in ("[]", "\x00\xff not json"):
-        (out / "run.json").write_text(content)
+    for content in (b"[]", b"\x00\xff not json", b"\xff\xfe"):
+        (out / "run.json").write_bytes(content)
         code, text = run_cli("plan", spot_xml, "--out", out, "--resolution", "8", "--spp", "1",
                              "--candidates", "4", "--heldout", "1", "--budget", "2", "--quiet")
         assert_one_line_error(code, text, "run.json")

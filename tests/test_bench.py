@@ -237,6 +237,9 @@ def test_finished_runs_count_only_with_the_jobs_settings(tmp_path, shared_data):
 def test_finished_runs_match_with_a_relative_or_absolute_folder(tmp_path, shared_data, monkeypatch):
     from mitsuba_active.bench import finished_record, plan_jobs
 
+    import trimesh
+
+    trimesh.creation.icosphere(subdivisions=1).export(tmp_path / "ball.ply")
     path = tmp_path / "s.toml"
     path.write_text("[[scenes]]\nname = 'ball'\nmesh = 'ball.ply'\n")
     suite = load_suite(path)

@@ -2,7 +2,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from mitsuba_active.cameras import fibonacci_sphere
+from mitsuba_active.cameras import fibonacci_sphere, snapped_up
 from mitsuba_active.report import plot_views, up_vertical
 
 
@@ -11,6 +11,12 @@ def test_up_is_drawn_vertically_in_a_right_handed_frame(up):
     basis = up_vertical(np.eye(3), up)  # rows: the images of the world axes
     assert np.allclose(up_vertical([up], up), [[0, 0, 1]])
     assert np.allclose(basis @ basis.T, np.eye(3)) and np.linalg.det(basis) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("up", [(0, 0, 1), (0, -1, 0), (1, 0, 0)])
+def test_the_up_axis_of_a_camera_rig(up):
+    assert np.array_equal(snapped_up(fibonacci_sphere(20, (0, 0, 0), 2.0, up=up)), up)
+    assert np.array_equal(snapped_up([]), (0, 1, 0))
 
 
 def test_camera_plot_of_a_run_with_repeats(tmp_path):

@@ -199,11 +199,11 @@ def test_resume_refuses_a_changed_scene(source, tmp_path, spot_xml):
 def test_plan_command_end_to_end(spot_xml, tmp_path):
     out = tmp_path / "cli"
     args = ["plan", str(spot_xml), "--budget", "3", "--initial-views", "1", "--candidates", "6", "--heldout", "2",
-            "--resolution", "16", "--spp", "2", "--eval-views", "3", "--steps-per-view", "5", "--eval-steps", "20",
+            "--resolution", "16", "--spp", "2", "--eval-views", "3,2", "--steps-per-view", "5", "--eval-steps", "20",
             "--rays-per-candidate", "16", "--quiet", "--out", str(out)]
     res = CliRunner().invoke(main, args)
     assert res.exit_code == 0, res.output
-    assert "held-out PSNR by views captured: 3:" in res.output
+    assert "held-out PSNR by views captured: 2: " in res.output and ", 3: " in res.output
     rec = json.loads((out / "run.json").read_text())
     assert rec["finished"] and len(rec["captured"]) == 3
     assert rec["ensemble_file"] == "ensemble_003.npz" and (out / "ensemble_003.npz").is_file()
@@ -211,7 +211,12 @@ def test_plan_command_end_to_end(spot_xml, tmp_path):
     res = CliRunner().invoke(main, ["export", str(out)])
     assert res.exit_code == 0 and (out / "export" / "transforms.json").is_file()
     # The same counts in another order are the same run; other settings are named.
-    res = CliRunner().invoke(main, [*args, "--eval-views", "3,3"])
+    res = CliRunner().invoke(main, [*args, "--eval-views", "2,3,3"])
+    assert res.exit_code == 0 and "already complete" in res.output, res.output
+    # ... also against a record that kept the order it was given in.
+    rec = json.loads((out / "run.json").read_text())
+    (out / "run.json").write_text(json.dumps({**rec, "config": {**rec["config"], "eval_views": [3, 2]}}))
+    res = CliRunner().invoke(main, args)
     assert res.exit_code == 0 and "already complete" in res.output, res.output
     res = CliRunner().invoke(main, [*args, "--budget", "4", "--seed", "5"])
     assert res.exit_code == 2 and "other settings (budget: 3 -> 4; seed: 0 -> 5)" in res.output, res.output

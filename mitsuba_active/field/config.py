@@ -7,7 +7,6 @@ Every option is a plain number so that the config round-trips through JSON
 from __future__ import annotations
 
 import dataclasses
-import math
 import numbers
 from dataclasses import dataclass
 
@@ -116,10 +115,11 @@ class FieldConfig:
 
     def __post_init__(self):
         from ..errors import UserError
+        from ..scene import finite
 
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not finite(value):
                 raise UserError(f"FieldConfig.{f.name} must be a finite number, got {value!r}")
             if isinstance(f.default, int) and not isinstance(value, numbers.Integral):
                 raise UserError(f"FieldConfig.{f.name} must be a whole number, got {value!r}")

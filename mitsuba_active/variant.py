@@ -107,6 +107,12 @@ def set_variant(name: str | None = None) -> str:
         ensure_llvm()
     import mitsuba as mi
 
+    if name == "cuda_ad_rgb":
+        import drjit as dr
+
+        if not dr.has_backend(dr.JitBackend.CUDA):
+            raise UserError("the cuda_ad_rgb variant needs an NVIDIA GPU with its driver, and none was found; "
+                            "unset MITSUBA_ACTIVE_VARIANT to run on the CPU (llvm_ad_rgb)")
     if mi.variant() != name:
         try:
             mi.set_variant(name)

@@ -105,8 +105,20 @@ LLVM_VARIANT = {"MITSUBA_ACTIVE_VARIANT": "llvm_ad_rgb"}
 def test_missing_llvm_is_one_line_with_the_fix(tmp_path):
     env = dict(os.environ, DRJIT_LIBLLVM_PATH=str(tmp_path / "libLLVM-nothing.so"), **LLVM_VARIANT)
     proc = subprocess.run([sys.executable, "-c", "import mitsuba_active"], capture_output=True, text=True, env=env)
-    assert proc.returncode != 0
+    assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "apt-get install libllvm19" in proc.stderr
+
+
+def test_gpu_variant_without_a_gpu_says_so():
+    import drjit as dr
+
+    if dr.has_backend(dr.JitBackend.CUDA):
+        pytest.skip("this machine has a GPU")
+    env = dict(os.environ, MITSUBA_ACTIVE_VARIANT="cuda_ad_rgb")
+    proc = subprocess.run([sys.executable, "-m", "mitsuba_active", "--version"], capture_output=True, text=True,
+                          env=env)
+    assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0
+    assert "needs an NVIDIA GPU" in proc.stderr and "unset MITSUBA_ACTIVE_VARIANT" in proc.stderr
 
 
 def test_llvm_search_rejects_old_versions(monkeypatch, tmp_path):

@@ -68,6 +68,14 @@ class SuiteScene:
     run_options: dict = field(default_factory=dict)
 
 
+def _setting_names() -> set[str]:
+    """The RunConfig fields a suite or ``--set`` may set: the suite's scenes,
+    planners and the seeds name each run, and are not settings."""
+    from .run import RunConfig
+
+    return {f.name for f in fields(RunConfig)} - set(JOB_KEYS)
+
+
 def _check_tables(path, where: str, settings: dict) -> None:
     for key in TABLE_KEYS:
         if not isinstance(settings.get(key, {}), dict):
@@ -85,7 +93,6 @@ class Suite:
 def load_suite(path) -> Suite:
     """Parse and check a suite file; UserError on anything malformed."""
     from .planners import make_planner
-    from .run import RunConfig
     from .scene import SceneOptions
 
     path = Path(path)
@@ -95,8 +102,7 @@ def load_suite(path) -> Suite:
         data = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"malformed suite file {path}: {exc}") from None
-    # The suite's scenes, planners and the seeds name each run: not settings.
-    run_fields = {f.name for f in fields(RunConfig)} - set(JOB_KEYS)
+    run_fields = _setting_names()
     planners = data.get("planners", ["random", "even", "rfe"])
     for p in planners:
         make_planner(p)
@@ -143,9 +149,7 @@ def parse_overrides(items) -> dict:
     Returns:
         dict in the layout of a suite's ``[defaults]``.
     """
-    from .run import RunConfig
-
-    run_fields = {f.name for f in fields(RunConfig)} - set(JOB_KEYS)
+    run_fields = _setting_names()
     out: dict = {}
     for item in items:
         key, sep, text = item.partition("=")

@@ -270,7 +270,7 @@ def _author_into_run(mesh, out: Path) -> str:
     """
     import tempfile
 
-    from .scene import content_hash, scene_from_mesh
+    from .scene import content_hash, move_scene_files, scene_from_mesh
 
     target = out / "scene" / f"{Path(mesh).stem}.xml"
     if Path(mesh).resolve().parent == target.parent.resolve():
@@ -283,9 +283,7 @@ def _author_into_run(mesh, out: Path) -> str:
         if (out / "run.json").is_file():
             raise UserError(f"{out} holds a run of another scene; choose another --out folder")
         target.parent.mkdir(parents=True, exist_ok=True)
-        # The XML lands last, as in scene_from_mesh.
-        for f in sorted(Path(tmp).iterdir(), key=lambda f: f.name == target.name):
-            shutil.move(str(f), target.parent / f.name)
+        move_scene_files(tmp, target.parent, target.name)
     return str(target)
 
 

@@ -19,7 +19,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import numbers
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -27,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import RIG_KINDS, camera_rays, snapped_up
+from .checks import is_number, is_whole
 from .env import ActiveViewEnv, SceneSource
 from .errors import UserError
 from .groundtruth import View
@@ -89,21 +89,15 @@ class RunConfig:
     NUMBERS = ("distance_weight", "fov")
 
     def _check_types(self) -> None:
-        def whole(v):
-            return isinstance(v, numbers.Integral) and not isinstance(v, bool)
-
-        def number(v):
-            return isinstance(v, numbers.Real) and not isinstance(v, bool)
-
         for name in self.WHOLE + ("downscale",):
             value = getattr(self, name)
-            if not whole(value) and not (name == "downscale" and value is None):
+            if not is_whole(value) and not (name == "downscale" and value is None):
                 raise UserError(f"{name} must be a whole number, got {value!r}")
         for name in self.NUMBERS:
             value = getattr(self, name)
-            if not number(value) and not (name == "fov" and value is None):
+            if not is_number(value) and not (name == "fov" and value is None):
                 raise UserError(f"{name} must be a number, got {value!r}")
-        if not isinstance(self.eval_views, (list, tuple)) or not all(whole(v) for v in self.eval_views):
+        if not isinstance(self.eval_views, (list, tuple)) or not all(is_whole(v) for v in self.eval_views):
             raise UserError(f"eval_views must be a list of view counts, got {self.eval_views!r}")
         for name in ("planner_options", "field"):
             if not isinstance(getattr(self, name), dict):

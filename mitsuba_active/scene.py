@@ -10,11 +10,8 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import math
-import numbers
 import os
 import shutil
-import struct
 import tempfile
 import warnings
 import xml.etree.ElementTree as ET
@@ -23,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .checks import is_number, is_whole
 from .errors import UserError
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
@@ -35,14 +33,6 @@ TEXTURE_NAMES = ("{stem}_texture.png", "{stem}_texture.jpg", "{stem}.png", "{ste
 
 #: Half width of the authored floor, in units of the normalised object (which spans 1).
 FLOOR_HALF_WIDTH = 0.8
-
-
-def finite(value) -> bool:
-    """Whether a number is finite as a float (a Python int may be too large for one)."""
-    try:
-        return math.isfinite(float(value))
-    except OverflowError:
-        return False
 
 
 @dataclass
@@ -72,20 +62,17 @@ class SceneOptions:
     max_depth: int = 6
 
     def __post_init__(self):
-        def number(v):
-            return isinstance(v, numbers.Real) and not isinstance(v, bool) and finite(v)
-
         if self.up not in ("y", "z"):
             raise UserError(f"the up axis must be 'y' or 'z', got {self.up!r}")
         color = self.color
         if isinstance(color, str) or not hasattr(color, "__len__") or len(color) != 3 \
-                or not all(number(c) and 0.0 <= c <= 1.0 for c in color):
+                or not all(is_number(c, finite=True) and 0.0 <= c <= 1.0 for c in color):
             raise UserError(f"color must be three numbers in [0, 1], got {color!r}")
         self.color = tuple(float(c) for c in color)
         if self.texture is not False and not isinstance(self.texture, (str, os.PathLike, type(None))):
             raise UserError(f"texture must be an image path, false (none) or unset (the mesh's own), "
                             f"got {self.texture!r}")
-        if not number(self.env_radiance) or self.env_radiance < 0:
+        if not is_number(self.env_radiance, finite=True) or self.env_radiance < 0:
             raise UserError(f"env_radiance must be a number >= 0, got {self.env_radiance!r}")
         for name in ("sun", "floor"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
@@ -93,7 +80,7 @@ class SceneOptions:
             setattr(self, name, bool(getattr(self, name)))
         for name, least in (("point_lights", 0), ("max_depth", 1)):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < least:
+            if not is_whole(value) or value < least:
                 raise UserError(f"{name} must be a whole number >= {least}, got {value!r}")
 
 
@@ -210,6 +197,13 @@ def _scene_xml(mesh_file: str, texture_file: str | None, opts: SceneOptions) -> 
     return "\n".join(lines) + "\n"
 
 
+def move_scene_files(src_dir: Path, out_dir: Path, xml_name: str) -> None:
+    """Move an authored scene's files from ``src_dir`` into ``out_dir``, the XML
+    last: an XML on disk always finds its mesh and texture."""
+    for f in sorted(Path(src_dir).iterdir(), key=lambda f: f.name == xml_name):
+        shutil.move(str(f), Path(out_dir) / f.name)
+
+
 def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **kwargs) -> Path:
     """Author a Mitsuba scene XML around a mesh; returns the XML path.
 
@@ -251,9 +245,7 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
             _load_mitsuba(staging / out_xml.name)
         except UserError as exc:  # name the files as the user will find them, not the staging folder
             raise UserError(str(exc).replace(str(staging), str(out_dir))) from None
-        # The XML lands last: an XML on disk always finds its mesh and texture.
-        for f in sorted(staging.iterdir(), key=lambda f: f.name == out_xml.name):
-            os.replace(f, out_dir / f.name)
+        move_scene_files(staging, out_dir, out_xml.name)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return out_xml

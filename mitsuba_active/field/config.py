@@ -7,7 +7,6 @@ Every option is a plain number so that the config round-trips through JSON
 from __future__ import annotations
 
 import dataclasses
-import numbers
 from dataclasses import dataclass
 
 
@@ -114,14 +113,14 @@ class FieldConfig:
     occupancy_warmup: int = 64
 
     def __post_init__(self):
+        from ..checks import is_number, is_whole
         from ..errors import UserError
-        from ..scene import finite
 
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Real) or not finite(value):
+            if not is_number(value, finite=True):
                 raise UserError(f"FieldConfig.{f.name} must be a finite number, got {value!r}")
-            if isinstance(f.default, int) and not isinstance(value, numbers.Integral):
+            if isinstance(f.default, int) and not is_whole(value):
                 raise UserError(f"FieldConfig.{f.name} must be a whole number, got {value!r}")
         if self.n_features != 4:
             raise UserError("FieldConfig.n_features must be 4 (density + RGB)")

@@ -1,0 +1,28 @@
+"""Type checks of user settings (TOML, JSON and library values alike).
+
+``bool`` is an ``int`` in Python, but ``true`` is never a count or a number
+here; a Python ``int`` may be too large for a float.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+
+
+def is_whole(value) -> bool:
+    """A whole number (numpy integers too), not a bool."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def is_number(value, finite: bool = False) -> bool:
+    """A real number (numpy scalars too), not a bool; with ``finite``, also
+    finite as a float."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return False
+    if not finite:
+        return True
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:
+        return False

@@ -295,23 +295,46 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
         return write_report(suite, jobs, out_dir / "report", profile, overrides)
     threads = max(1, (os.cpu_count() or 1) // workers)
     bar = tqdm(total=len(jobs), desc=f"suite {suite.name}", unit="run", disable=not progress)
-    if workers == 1:
-        for job in jobs:
-            bar.set_postfix_str(f"{job.scene}/{job.planner}/{job.seed}")
-            run_job(job)
-            bar.update()
-    else:
-        # Dr.Jit must not be forked once initialised: workers are fresh processes.
-        with mp.get_context("spawn").Pool(workers) as pool:
-            for status in pool.imap_unordered(_run_job_star, [(j, threads) for j in jobs]):
-                bar.set_postfix_str(status["job"])
+    try:
+        if workers == 1:
+            for job in jobs:
+                bar.set_postfix_str(f"{job.scene}/{job.planner}/{job.seed}")
+                run_job(job)
                 bar.update()
-            # Let the workers exit on their own: leaving the block terminates
-            # them, which can leak a semaphore (a warning at interpreter exit).
-            pool.close()
-            pool.join()
-    bar.close()
+        else:
+            # Dr.Jit must not be forked once initialised: workers are fresh processes.
+            pool = mp.get_context("spawn").Pool(workers, initializer=_init_worker)
+            try:
+                for status in pool.imap_unordered(_run_job_star, [(j, threads) for j in jobs]):
+                    bar.set_postfix_str(status["job"])
+                    bar.update()
+                pool.close()
+            except BaseException:  # Ctrl-C, or a failed job
+                pool.terminate()
+                raise
+            finally:
+                pool.join()
+    finally:
+        bar.close()
     return write_report(suite, jobs, out_dir / "report", profile, overrides)
+
+
+def _init_worker():
+    """Ctrl-C is the parent's to handle: it stops the workers (SIGTERM), and a
+    stopped worker exits through its ``finally`` blocks, so no temporary file
+    is left. tqdm's lock is a thread lock here: its default, a
+    multiprocessing lock, would be reported as leaked when a worker stops."""
+    import signal
+    import threading
+
+    from tqdm import tqdm
+
+    def stop(signum, frame):
+        raise SystemExit(1)
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, stop)
+    tqdm.set_lock(threading.RLock())
 
 
 def _run_job_star(args):

@@ -64,7 +64,11 @@ def plot_metrics(series: dict[str, list[dict]], out_dir, title: str = "", bands:
 
 
 def contact_sheet(images: list, labels: list[str], path, columns: int = 5) -> Path:
-    """A grid of image files with a caption under each, saved as PNG."""
+    """A grid of images with a caption under each, saved as PNG.
+
+    Args:
+        images: image files, or (H, W, 3) arrays of display values in [0, 1].
+    """
     import imageio.v3 as iio
 
     plt = _plt()
@@ -75,7 +79,8 @@ def contact_sheet(images: list, labels: list[str], path, columns: int = 5) -> Pa
     for k, ax in enumerate(axes.ravel()):
         ax.axis("off")
         if k < n:
-            ax.imshow(iio.imread(images[k]))
+            img = images[k]
+            ax.imshow(np.clip(img, 0.0, 1.0) if isinstance(img, np.ndarray) else iio.imread(img))
             ax.set_title(labels[k], fontsize=8)
     fig.tight_layout()
     with atomic_write(path) as tmp:

@@ -396,6 +396,10 @@ class Run:
             self.rng.bit_generator.state = self.record["rng_state"]
             self.env.reset(seed=cfg.seed, options={"initial_views": 0})
             self.env.restore(self.record["captured"])
+            # Written again from the restored views: one damaged or deleted by
+            # the interruption is whole again.
+            for n, v in enumerate(self.env.views):
+                self._save_view(n, v)
             self.log(f"resuming {self.out}: {len(self.env.captured)} of {cfg.budget} views captured")
         else:
             self.env.reset(seed=cfg.seed, options={"initial_views": cfg.initial_views})
@@ -473,8 +477,7 @@ class Run:
 
         write_metrics_csv(self.out / "metrics.csv", self.record["metrics"])
         plot_metrics({self.cfg.planner: self.record["metrics"]}, self.out, title=self.source.name)
-        sheet = [self.out / "views" / f"view_{n:03d}.png" for n in range(len(self.env.captured))]
-        contact_sheet(sheet, [f"#{n} cand {i}" for n, i in enumerate(self.env.captured)],
+        contact_sheet([v.rgb for v in self.env.views], [f"#{n} cand {i}" for n, i in enumerate(self.env.captured)],
                       self.out / "chosen_views.png")
         scene = getattr(self.source, "scene", None)
         # A dataset has no scene: its cameras' own up vectors tell which way is up.

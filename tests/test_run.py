@@ -95,11 +95,15 @@ def test_interrupted_run_resumes_without_redoing_rounds(source, tmp_path, monkey
         _run(source, tmp_path / "cut", planner="even", budget=6, eval_views=[3, 6])
     partial = json.loads((tmp_path / "cut" / "run.json").read_text())
     assert len(partial["captured"]) == 4 and not partial["finished"]
+    # A view file cut short by the interruption is written again on resume.
+    damaged = tmp_path / "cut" / "views" / "view_003.png"
+    damaged.write_bytes(damaged.read_bytes()[:20])
     calls["n"] = 10
     resumed = _run(source, tmp_path / "cut", planner="even", budget=6, eval_views=[3, 6])
     assert calls["n"] == 12  # only the two missing rounds ran
     assert resumed["captured"] == full["captured"]
     assert [m["views"] for m in resumed["metrics"]] == [3, 6]
+    assert damaged.read_bytes() == (tmp_path / "full" / "views" / "view_003.png").read_bytes()
     # Other settings in the same folder are refused, not mixed in.
     from mitsuba_active.errors import UserError
 

@@ -254,6 +254,13 @@ def interior(n, bbox_min, bbox_max, fov=70.0, width=64, height=64, offset=0.0, s
 RIG_KINDS = ("auto", "sphere", "hemisphere", "rings", "interior", "xml")
 
 
+def clip_range(radius: float) -> tuple[float, float]:
+    """Near and far clip distances (scene units) for cameras around or inside
+    a scene of this bounding radius: 1e-3 and 1e4 unless the scene is so small
+    or so large that they would cut into it."""
+    return min(1e-3, 1e-2 * radius), max(1e4, 100.0 * radius)
+
+
 def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, height=None, fov=None):
     """Candidate and held-out cameras for a :class:`~mitsuba_active.scene.Scene`.
 
@@ -270,6 +277,7 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     if rig not in RIG_KINDS:
         raise UserError(f"unknown rig '{rig}'; choose one of {', '.join(RIG_KINDS)}")
     generated = rig
+    near, far = clip_range(scene.radius)
     if rig in ("auto", "xml"):  # the XML's own sensors get held-out views of the right kind
         generated = "interior" if scene.interior else "sphere"
     if generated == "interior":
@@ -277,7 +285,8 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
 
         def make(n, off):
             # Over-generate, then drop cameras that would sit inside furniture.
-            cams = interior(4 * n, scene.bbox_min, scene.bbox_max, fov, width, height, off, up=scene.up)
+            cams = interior(4 * n, scene.bbox_min, scene.bbox_max, fov, width, height, off, near=near, far=far,
+                            up=scene.up)
             free = scene.free_space(np.stack([c.position for c in cams]))
             cams = [c for c, ok in zip(cams, free) if ok]
             if len(cams) < n:
@@ -289,7 +298,8 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
             raise UserError(f"field of view must be in (0, 180) degrees, got {fov}")
         radius = 1.05 * scene.radius / math.sin(math.radians(fov) / 2)
         fn = {"sphere": fibonacci_sphere, "hemisphere": hemisphere, "rings": rings}[generated]
-        make = lambda n, off: fn(n, scene.center, radius, fov, width, height, off, up=scene.up)  # noqa: E731
+        make = lambda n, off: fn(n, scene.center, radius, fov, width, height, off, up=scene.up,  # noqa: E731
+                                 near=near, far=far)
     if rig == "xml":
         if not scene.sensors:
             raise UserError(f"{scene.path} has no perspective sensor to use as candidates")

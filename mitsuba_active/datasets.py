@@ -102,6 +102,11 @@ class DatasetSource:
         self.white_background = bool(white_background)
         self._views: dict[int, View] = {}  # keyed by id(frame): frames may repeat across splits
 
+    @property
+    def has_distance(self) -> bool:
+        """True when the candidate frames come with depth maps (else views' distances are all 0)."""
+        return any(f.depth is not None for f in self.candidate_frames)
+
     @classmethod
     def from_path(cls, path, downscale: int | None = 1, n_heldout: int | None = None,
                   white_background: bool = True, n_candidates: int | None = None,

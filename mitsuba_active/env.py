@@ -31,6 +31,7 @@ class ViewSource(Protocol):
     bbox_min: np.ndarray
     bbox_max: np.ndarray
     name: str
+    has_distance: bool  #: whether views carry distances (a dataset without depth maps has none)
 
     def candidate_view(self, index: int) -> View: ...
 
@@ -49,6 +50,8 @@ class SceneSource:
         spp: samples per pixel of the ground-truth renders.
         cache_dir: EXR cache folder (see :class:`~mitsuba_active.groundtruth.GroundTruth`).
     """
+
+    has_distance = True  # rendered: every view has its distances
 
     def __init__(self, scene, candidates, heldout, spp=64, cache_dir=None):
         check_disjoint(candidates, heldout)

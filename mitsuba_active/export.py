@@ -2,7 +2,8 @@
 
 Poses are converted to the OpenGL/Blender camera convention (camera looks
 along -Z, +Y up) that those tools expect. Each frame carries its PNG image
-and an EXR with the distance from the optical centre (channel ``Z``).
+and an EXR with the distance from the optical centre (channel ``Z``), except
+in runs of a dataset without depth maps, which have no distances.
 """
 
 from __future__ import annotations
@@ -19,7 +20,8 @@ from .imageio_utils import atomic_write
 
 
 def export_transforms(run_dir, out_dir=None) -> Path:
-    """Write ``transforms.json``, ``images/`` and ``distance/`` for a run; returns the JSON path."""
+    """Write ``transforms.json``, ``images/`` and ``distance/`` (when the run has distances)
+    for a run; returns the JSON path."""
     run_dir = Path(run_dir)
     rec_path = run_dir / "run.json"
     if not rec_path.is_file():
@@ -38,23 +40,30 @@ def export_transforms(run_dir, out_dir=None) -> Path:
     missing = [n for n in range(len(cams)) if not (run_dir / "views" / f"view_{n:03d}.png").is_file()]
     if missing:
         raise UserError(f"{run_dir}/views is missing images for views {missing}")
+    # A run of a dataset without depth maps has no distances to export.
+    distances = rec.get("distances", True)
     ref = cams[0]
     k = ref.intrinsics()
     frames = []
     (out / "images").mkdir(parents=True, exist_ok=True)
-    (out / "distance").mkdir(parents=True, exist_ok=True)
+    if distances:
+        (out / "distance").mkdir(parents=True, exist_ok=True)
     for n, (cam, index) in enumerate(zip(cams, rec["captured"])):
         img, dist = f"images/view_{n:03d}.png", f"distance/view_{n:03d}.exr"
         shutil.copyfile(run_dir / "views" / f"view_{n:03d}.png", out / img)
-        shutil.copyfile(run_dir / "views" / f"view_{n:03d}.exr", out / dist)
-        frames.append({"file_path": img, "distance_file_path": dist, "candidate": int(index),
+        frame = {"file_path": img}
+        if distances:
+            shutil.copyfile(run_dir / "views" / f"view_{n:03d}.exr", out / dist)
+            frame["distance_file_path"] = dist
+        frames.append({**frame, "candidate": int(index),
                        "transform_matrix": mitsuba_to_opengl(cam.to_world).tolist()})
     data = {"camera_model": "OPENCV", "camera_angle_x": math.radians(ref.fov),
             "fl_x": k[0, 0], "fl_y": k[1, 1], "cx": k[0, 2], "cy": k[1, 2], "w": ref.width, "h": ref.height,
-            "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
-            "distance_note": "distance_file_path: EXR channel Z, distance from the optical centre in scene "
-                             "units along each pixel-centre ray (not depth); 0 where nothing is hit",
-            "frames": frames}
+            "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0}
+    if distances:
+        data["distance_note"] = ("distance_file_path: EXR channel Z, distance from the optical centre in scene "
+                                 "units along each pixel-centre ray (not depth); 0 where nothing is hit")
+    data["frames"] = frames
     path = out / "transforms.json"
     with atomic_write(path) as tmp:
         tmp.write_text(json.dumps(data, indent=1))

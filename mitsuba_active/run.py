@@ -349,8 +349,12 @@ class Run:
                        "candidates": [c.to_dict() for c in self.source.candidates],
                        "heldout": [c.to_dict() for c in self.source.heldout],
                        "content_hash": self._content_hash(),
+                       "distances": self._has_distance(),
                        "captured": [], "rounds": [], "metrics": [], "finished": False}
         return False
+
+    def _has_distance(self) -> bool:
+        return bool(getattr(self.source, "has_distance", True))
 
     def _content_hash(self):
         scene = getattr(self.source, "scene", None)
@@ -379,7 +383,10 @@ class Run:
     def _save_view(self, n: int, view: View) -> None:
         stem = self.out / "views" / f"view_{n:03d}"
         write_png(stem.with_suffix(".png"), view.rgb)
-        write_exr(stem.with_suffix(".exr"), {"RGB": srgb_to_linear(view.rgb), "Z": view.distance})
+        channels = {"RGB": srgb_to_linear(view.rgb)}
+        if self._has_distance():  # no Z of zeros that would read as "nothing hit"
+            channels["Z"] = view.distance
+        write_exr(stem.with_suffix(".exr"), channels)
 
     # -- the loop -----------------------------------------------------------
     def execute(self) -> dict:
@@ -499,7 +506,10 @@ class Run:
             write_png(f"{stem}_pred.png", pred["rgb"])
             write_png(f"{stem}_gt.png", gt.rgb)
             write_exr(f"{stem}_pred.exr", {"RGB": srgb_to_linear(pred["rgb"]), "Z": pred["distance"]})
-            write_exr(f"{stem}_gt.exr", {"RGB": srgb_to_linear(gt.rgb), "Z": gt.distance})
+            gt_channels = {"RGB": srgb_to_linear(gt.rgb)}
+            if self._has_distance():
+                gt_channels["Z"] = gt.distance
+            write_exr(f"{stem}_gt.exr", gt_channels)
             if self.ensemble is not None and self.ensemble.n_members > 1:
                 ens_pred = predict_view(self.ensemble, self.source.heldout[i])
                 var = ens_pred["rgb_var"].mean(axis=2)

@@ -385,6 +385,11 @@ def _is_interior(mi_scene, bbox_min, bbox_max, n=256) -> bool:
     return bool(hit.mean() > 0.75 and front.sum() > 0.8 * max(hit.sum(), 1))
 
 
+#: Largest coordinate of a scene's geometry that single-precision rendering
+#: and its squared distances handle (scene units).
+MAX_SCENE_COORDINATE = 1e12
+
+
 def load_scene(xml_path, **params) -> Scene:
     """Load any Mitsuba 3 scene XML; UserError when missing, malformed or empty.
 
@@ -410,6 +415,11 @@ def load_scene(xml_path, **params) -> Scene:
     lo, hi = np.array(bbox.min, dtype=np.float64), np.array(bbox.max, dtype=np.float64)
     if not (np.isfinite(lo).all() and np.isfinite(hi).all()) or np.max(hi - lo) <= 0:
         raise UserError(f"scene {xml_path} has empty or unbounded geometry")
+    size = float(np.max(np.abs(np.concatenate([lo, hi]))))
+    if size > MAX_SCENE_COORDINATE:
+        # Squared distances (variances, errors) would overflow single precision.
+        raise UserError(f"scene {xml_path} reaches {size:.3g} scene units from the origin, more than "
+                        f"{MAX_SCENE_COORDINATE:.0e}; scale it down")
     digest = content_hash(xml_path, refs, **params)
     sensors = []
     for s in mi_scene.sensors():

@@ -4,6 +4,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -368,3 +369,37 @@ def test_render_and_export_name_the_wrong_kind_of_input(tmp_path, shared_data, o
     (tmp_path / "run" / "run.json").write_text('{"format": 1}')
     code, text = run_cli("export", tmp_path / "run")
     assert_one_line_error(code, text, "not a run record")
+
+
+def test_a_flat_mesh_plans_through(tmp_path):
+    """A single quad (no depth) is a valid object: the fields' box gets depth."""
+    quad = tmp_path / "quad.obj"
+    quad.write_text("v -1 -1 0\nv 1 -1 0\nv 1 1 0\nv -1 1 0\nf 1 2 3 4\n")
+    code, text = run_cli("plan", quad, "--planner", "even", "--budget", "3", "--resolution", "16",
+                         "--candidates", "8", "--heldout", "2", "--spp", "2", "--eval-views", "2,3",
+                         "--eval-steps", "10", "--steps-per-view", "5", "--quiet", "--out", tmp_path / "run")
+    assert code == 0, text
+    assert "3 views" in text or "3:" in text
+
+
+def _rectangle_xml(path, scale):
+    path.write_text(f'<scene version="3.0.0"><shape type="rectangle"><transform name="to_world">'
+                    f'<scale value="{scale}"/></transform></shape><emitter type="constant"/></scene>')
+    return path
+
+
+def test_a_scene_too_large_for_single_precision_is_refused(tmp_path, out):
+    code, text = run_cli("render", _rectangle_xml(tmp_path / "huge.xml", "1e30"), "-o", out)
+    assert_one_line_error(code, text, "scale it down")
+    _assert_nothing_written(out)
+
+
+def test_cameras_of_a_large_scene_see_all_of_it(tmp_path):
+    from mitsuba_active.cameras import scene_rigs
+    from mitsuba_active.scene import load_scene
+
+    scene = load_scene(_rectangle_xml(tmp_path / "big.xml", "1e6"))
+    candidates, heldout = scene_rigs(scene, "sphere", 4, 2)
+    for cam in candidates + heldout:
+        reach = np.linalg.norm(cam.position - scene.center) + scene.radius
+        assert cam.near < 1e-3 * scene.radius and cam.far > reach

@@ -359,3 +359,22 @@ def test_distance_maps_of_our_own_export_are_read_as_distances(tmp_path):
     write_dataset(tmp_path, n=3, frame_extra={0: {"distance_file_path": "distance/d.exr"}})
     v = DatasetSource.from_path(tmp_path).heldout_view(0)
     assert np.array_equal(v.distance, dist) and np.array_equal(v.mask, dist > 0)
+
+
+def test_a_run_of_a_dataset_without_depth_exports_no_distances(tmp_path, mic_dir):
+    """mic has no depth maps: its views carry no Z channel of zeros (which
+    would read as "nothing hit"), and the export names no distance files."""
+    from mitsuba_active.export import export_transforms
+    from mitsuba_active.imageio_utils import read_exr
+    from mitsuba_active.run import Run, RunConfig
+
+    src = open_source(mic_dir, n_candidates=6, n_heldout=2, resolution=25)
+    assert not src.has_distance
+    cfg = RunConfig(scene=str(mic_dir), planner="even", budget=3, initial_views=1, resolution=25, candidates=6,
+                    heldout=2, eval_views=[3], eval_steps=5, initial_steps=5, steps_per_view=5)
+    rec = Run(src, cfg, tmp_path / "run", progress=False, log=lambda m: None).execute()
+    assert rec["distances"] is False
+    assert set(read_exr(tmp_path / "run" / "views" / "view_000.exr")) == {"RGB"}
+    meta = json.loads(export_transforms(tmp_path / "run", tmp_path / "export").read_text())
+    assert len(meta["frames"]) == 3 and not any("distance_file_path" in f for f in meta["frames"])
+    assert "distance_note" not in meta and not (tmp_path / "export" / "distance").exists()

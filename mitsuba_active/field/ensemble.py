@@ -28,6 +28,10 @@ from .occupancy import DECAY, cell_opacity
 from .render import FieldParams, hash_u32, render_flat, render_members, uniform_from_u32
 
 
+#: Least side of the fields' box, as a fraction of its longest side.
+MIN_BOX_SIDE = 0.05
+
+
 def _member_seeds(seed: int, n: int):
     """Independent per-member seed sequences; member k does not depend on n."""
     return [np.random.SeedSequence(int(seed), spawn_key=(k,)) for k in range(n)]
@@ -38,7 +42,9 @@ class Ensemble:
 
     Args:
         bbox_min, bbox_max: array-likes of 3 floats (scene units), the
-            region the fields live in (padded by ``config.bbox_padding``).
+            region the fields live in (padded by ``config.bbox_padding``;
+            a side shorter than ``MIN_BOX_SIDE`` of the longest, as of a
+            flat object, is widened to that first).
         n_members: K.
         config: :class:`FieldConfig` (defaults if None).
         seed: base seed; member k is initialised from ``(seed, k)``.
@@ -49,16 +55,26 @@ class Ensemble:
         self.config = config if config is not None else FieldConfig()
         self.bbox_min = np.asarray(bbox_min, np.float64).reshape(3)
         self.bbox_max = np.asarray(bbox_max, np.float64).reshape(3)
-        if not np.all(np.isfinite(self.bbox_min)) or not np.all(self.bbox_max > self.bbox_min):
-            raise UserError("Ensemble needs a finite bounding box with bbox_max > bbox_min")
+        extent = self.bbox_max - self.bbox_min
+        if not (np.all(np.isfinite(extent)) and np.all(extent >= 0) and extent.max() > 0):
+            raise UserError("Ensemble needs a finite bounding box with bbox_max >= bbox_min, "
+                            "not a single point")
         if int(n_members) < 1:
             raise UserError("Ensemble needs n_members >= 1")
         self.n_members = int(n_members)
         self.seed = int(seed)
         self.layout = GridLayout.from_config(self.config)
-        pad = self.config.bbox_padding * (self.bbox_max - self.bbox_min)
-        self.box_min = tuple(float(v) for v in self.bbox_min - pad)
-        self.box_max = tuple(float(v) for v in self.bbox_max + pad)
+        pad = self.config.bbox_padding * extent
+        box_min, box_max = self.bbox_min - pad, self.bbox_max + pad
+        # A flat object (a sign, a single triangle) has no depth along some
+        # axis; the field's box gets MIN_BOX_SIDE of the longest side there.
+        flat = extent < MIN_BOX_SIDE * extent.max()
+        if flat.any():
+            centre = 0.5 * (self.bbox_min + self.bbox_max)
+            half = 0.5 * MIN_BOX_SIDE * extent.max() * (1.0 + 2.0 * self.config.bbox_padding)
+            box_min[flat], box_max[flat] = centre[flat] - half, centre[flat] + half
+        self.box_min = tuple(float(v) for v in box_min)
+        self.box_max = tuple(float(v) for v in box_max)
 
         seqs = _member_seeds(self.seed, self.n_members)
         grid0 = init_grid(self.layout, self.config, seqs)

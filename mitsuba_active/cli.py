@@ -11,6 +11,7 @@ import functools
 import json
 import re
 import shutil
+import signal
 import sys
 import warnings
 from pathlib import Path
@@ -27,9 +28,16 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
     click.echo(f"mitsuba-active: warning: {message}", err=True)
 
 
+def _stop(signum, frame):
+    # SIGTERM (timeout, kill, a job scheduler) stops a command as Ctrl-C does:
+    # through its clean-up, not halfway through writing its output.
+    raise KeyboardInterrupt
+
+
 def _one_line_errors(fn):
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
+        previous = signal.signal(signal.SIGTERM, _stop)
         try:
             with warnings.catch_warnings():
                 warnings.showwarning = _show_warning
@@ -44,6 +52,8 @@ def _one_line_errors(fn):
         except KeyboardInterrupt:
             click.echo("mitsuba-active: interrupted", err=True)
             sys.exit(130)
+        finally:
+            signal.signal(signal.SIGTERM, previous)
     return wrapper
 
 

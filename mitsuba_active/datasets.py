@@ -20,6 +20,7 @@ cached in memory. See docs/datasets.md for the conventions and limits.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
@@ -89,6 +90,8 @@ class DatasetSource:
         candidate_frames, heldout_frames: the matching :class:`Frame` records.
         bbox_min, bbox_max: (3,) float64 scene bounds in scene units.
         name: the dataset folder's name.
+        content_hash: hex digest of the dataset's JSON files (None unless
+            built by :meth:`from_path`); runs are matched to it.
     """
 
     def __init__(self, candidate_frames, heldout_frames, bbox_min, bbox_max, name="dataset",
@@ -101,6 +104,7 @@ class DatasetSource:
         self.name = name
         self.white_background = bool(white_background)
         self._views: dict[int, View] = {}  # keyed by id(frame): frames may repeat across splits
+        self.content_hash = None  # set by from_path: a digest of the dataset's JSON files
 
     @property
     def has_distance(self) -> bool:
@@ -157,7 +161,14 @@ class DatasetSource:
                             "--heldout 0); tag some frames \"split\": \"test\"")
         if bounds is None:
             bounds = estimate_bounds([f.camera for f in train + test])
-        return cls(train, test, bounds[0], bounds[1], name=name, white_background=white_background)
+        src = cls(train, test, bounds[0], bounds[1], name=name, white_background=white_background)
+        # What the frames are (poses, image and depth file names), wherever
+        # the dataset lies and whichever of its names it was opened by.
+        digest = hashlib.sha256()
+        for f in files:
+            digest.update(f.read_bytes())
+        src.content_hash = digest.hexdigest()
+        return src
 
     # -- ViewSource ----------------------------------------------------------
     def candidate_view(self, index: int) -> View:

@@ -330,7 +330,7 @@ class Run:
                 raise UserError(f"{self.record_path} is damaged ({exc}); remove it to start over") from None
             if not isinstance(rec, dict):
                 raise UserError(f"{self.record_path} is not a run record; remove it to start over")
-            # Scenes are compared by content below; datasets, which have none, by path.
+            # Scenes and datasets are compared by content below, not by path.
             changed = config_differences(rec.get("config"), self._config_dict(),
                                          compare_scene=self._content_hash() is None)
             if changed:
@@ -357,8 +357,10 @@ class Run:
         return bool(getattr(self.source, "has_distance", True))
 
     def _content_hash(self):
+        """The scene's (or the dataset's) content digest: a run folder is
+        matched to it, not to the path the source was named by."""
         scene = getattr(self.source, "scene", None)
-        return getattr(scene, "content_hash", None)
+        return getattr(scene if scene is not None else self.source, "content_hash", None)
 
     def _save_record(self) -> None:
         now = time.perf_counter()

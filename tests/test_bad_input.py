@@ -403,3 +403,23 @@ def test_cameras_of_a_large_scene_see_all_of_it(tmp_path):
     for cam in candidates + heldout:
         reach = np.linalg.norm(cam.position - scene.center) + scene.radius
         assert cam.near < 1e-3 * scene.radius and cam.far > reach
+
+
+def test_sigterm_stops_plan_like_ctrl_c(tmp_path, spot_xml):
+    """``kill`` (SIGTERM) before the first run record: exit 130, one line,
+    and the views already written are removed with the folder."""
+    import signal
+    import time
+
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "mitsuba_active", "plan", str(spot_xml), "--resolution", "16",
+                             "--candidates", "8", "--heldout", "2", "--spp", "2", "--budget", "4",
+                             "--steps-per-view", "1000000", "--quiet", "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not list(out.glob("views/*.png")) and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.1)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130 and err.strip().splitlines()[-1] == "mitsuba-active: interrupted", err
+    assert not out.exists()

@@ -361,9 +361,12 @@ def test_distance_maps_of_our_own_export_are_read_as_distances(tmp_path):
     assert np.array_equal(v.distance, dist) and np.array_equal(v.mask, dist > 0)
 
 
-def test_a_run_of_a_dataset_without_depth_exports_no_distances(tmp_path, mic_dir):
+def test_a_run_of_a_dataset_without_depth_exports_no_distances(tmp_path, mic_dir, monkeypatch):
     """mic has no depth maps: its views carry no Z channel of zeros (which
-    would read as "nothing hit"), and the export names no distance files."""
+    would read as "nothing hit"), and the export names no distance files.
+    The run folder belongs to the dataset, by whichever path it is named."""
+    import os
+
     from mitsuba_active.export import export_transforms
     from mitsuba_active.imageio_utils import read_exr
     from mitsuba_active.run import Run, RunConfig
@@ -378,3 +381,9 @@ def test_a_run_of_a_dataset_without_depth_exports_no_distances(tmp_path, mic_dir
     meta = json.loads(export_transforms(tmp_path / "run", tmp_path / "export").read_text())
     assert len(meta["frames"]) == 3 and not any("distance_file_path" in f for f in meta["frames"])
     assert "distance_note" not in meta and not (tmp_path / "export" / "distance").exists()
+    monkeypatch.chdir(tmp_path)
+    train_json = os.path.relpath(mic_dir / "transforms_train.json", tmp_path)
+    again = Run(open_source(train_json, n_candidates=6, n_heldout=2, resolution=25),
+                RunConfig(**{**cfg.__dict__, "scene": train_json}), tmp_path / "run", progress=False,
+                log=lambda m: None).execute()
+    assert again["finished"] and again["captured"] == rec["captured"]

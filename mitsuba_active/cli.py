@@ -17,6 +17,7 @@ import warnings
 from pathlib import Path
 
 import click
+from click.core import ParameterSource
 
 from .errors import UserError
 
@@ -220,11 +221,21 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     from .scene import MESH_SUFFIXES
 
     scene_path = str(scene_path or BUNDLED_SCENE)
+    given = _given_options()
     if planner != "rfe" and score_form != "sum":
         raise UserError(f"--score applies to the rfe planner only, not to {planner}")
+    parsed = _parse_options(planner_option)
+    if "score_form" in given and "form" in parsed:
+        raise UserError("give rfe's score once: --score or --planner-option form=...")
     options = {"form": score_form} if planner == "rfe" else {}
-    options.update(_parse_options(planner_option))
-    make_planner(planner, **options)  # unknown planner: fail before any rendering
+    options.update(parsed)
+    chosen = make_planner(planner, **options)  # unknown planner: fail before any rendering
+    if "ensemble" in given:
+        if not chosen.needs_ensemble:
+            raise UserError(f"--ensemble does not apply to the {planner} planner, which trains no ensemble")
+        if chosen.max_members is not None and ensemble > chosen.max_members:
+            raise UserError(f"the {planner} planner trains {chosen.max_members} field; "
+                            f"--ensemble {ensemble} does not apply")
     cfg = RunConfig(scene=scene_path, planner=planner, planner_options=options, budget=budget,
                     initial_views=initial_views, ensemble=ensemble, batch=batch, seed=seed,
                     resolution=resolution, candidates=n_candidates, heldout=n_heldout, rig=rig, fov=fov, spp=spp,
@@ -240,7 +251,7 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     try:
         if Path(scene_path).suffix.lower() in MESH_SUFFIXES:
             scene_path = cfg.scene = _author_into_run(scene_path, out)
-        record = _plan(cfg, scene_path, out, quiet)
+        record = _plan(cfg, scene_path, out, quiet, given)
     except BaseException:
         # Without run.json there is nothing to resume: leave nothing half-made
         # behind (an existing folder keeps what it held).
@@ -297,8 +308,16 @@ def _author_into_run(mesh, out: Path) -> str:
     return str(target)
 
 
-def _plan(cfg, scene_path: str, out: Path, quiet: bool) -> dict:
-    """Open the scene or dataset and run (or resume) the run in ``out``."""
+def _given_options() -> set[str]:
+    """Names of the current command's options given on the command line (not defaults)."""
+    ctx = click.get_current_context()
+    return {name for name in ctx.params if ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE}
+
+
+def _plan(cfg, scene_path: str, out: Path, quiet: bool, given=frozenset()) -> dict:
+    """Open the scene or dataset and run (or resume) the run in ``out``.
+
+    ``given``: the options given on the command line, which must apply."""
     from tqdm import tqdm
 
     from .datasets import open_source
@@ -309,6 +328,15 @@ def _plan(cfg, scene_path: str, out: Path, quiet: bool) -> dict:
                          resolution=cfg.resolution, fov=cfg.fov, spp=cfg.spp, downscale=cfg.downscale)
     if cfg.downscale is not None and isinstance(source, SceneSource):
         raise UserError("--downscale applies to datasets; a scene renders at --resolution")
+    if not isinstance(source, SceneSource):
+        if "spp" in given:
+            raise UserError("--spp applies to scenes; a dataset's images are as they were captured")
+        for name, flag, asked, kept, kind in (
+                ("n_candidates", "--candidates", cfg.candidates, len(source.candidates), "training"),
+                ("n_heldout", "--heldout", cfg.heldout, len(source.heldout), "held-out")):
+            if name in given and asked > kept:
+                click.echo(f"note: {source.name} has {kept} {kind} frames; {flag} {asked} uses all of them",
+                           err=True)
     if cfg.distance_weight == 0 and isinstance(source, SceneSource) and source.scene.interior:
         # Colour alone leaves a sparse-view field free to fill a room with fog (see README).
         click.echo(f"note: {Path(scene_path).name} is a room seen from inside, which fits far better "

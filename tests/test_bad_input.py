@@ -423,3 +423,25 @@ def test_sigterm_stops_plan_like_ctrl_c(tmp_path, spot_xml):
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 130 and err.strip().splitlines()[-1] == "mitsuba-active: interrupted", err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--planner", "even", "--ensemble", "3"], "trains no ensemble"),
+    (["--planner", "fisher", "--ensemble", "3"], "trains 1 field"),
+    (["--score", "sum", "--planner-option", "form=log"], "give rfe's score once"),
+])
+def test_plan_options_that_do_not_apply_are_refused(spot_xml, tmp_path, args, needle):
+    out = tmp_path / "o"
+    code, text = run_cli("plan", spot_xml, "--out", out, *args)
+    assert_one_line_error(code, text, needle)
+    assert not out.exists()
+
+
+def test_a_dataset_refuses_spp_and_notes_missing_frames(shared_data, tmp_path):
+    mic = shared_data / "datasets" / "nerf_synthetic_mic"
+    code, text = run_cli("plan", mic, "--spp", "4", "--out", tmp_path / "a")
+    assert_one_line_error(code, text, "--spp applies to scenes")
+    code, text = run_cli("plan", mic, "--heldout", "500", "--planner", "even", "--budget", "2", "--eval-views", "2",
+                         "--eval-steps", "5", "--resolution", "25", "--quiet", "--out", tmp_path / "b")
+    assert code == 0, text
+    assert "note: nerf_synthetic_mic has 25 held-out frames; --heldout 500 uses all of them" in text

@@ -116,8 +116,9 @@ def _find_texture(mesh, mesh_path: Path, texture) -> tuple[np.ndarray | None, Pa
         return None, None
     if texture:
         tex = Path(texture)
-        if not tex.is_file():
+        if not tex.exists():
             raise UserError(f"texture file not found: {tex}")
+        _check_image(tex)
         return np.asarray(uv), tex
     for pattern in TEXTURE_NAMES:
         cand = mesh_path.with_name(pattern.format(stem=mesh_path.stem))
@@ -127,6 +128,18 @@ def _find_texture(mesh, mesh_path: Path, texture) -> tuple[np.ndarray | None, Pa
     if image is not None and min(image.size) > 2:  # trimesh puts a 2x2 placeholder when there is none
         return np.asarray(uv), "embedded"
     return None, None
+
+
+def _check_image(path: Path) -> None:
+    """UserError unless ``path`` is an image file that Mitsuba's bitmap texture reads."""
+    import mitsuba as mi
+
+    if not path.is_file():
+        raise UserError(f"texture {path} is not a file")
+    try:
+        mi.Bitmap(str(path))
+    except Exception:
+        raise UserError(f"texture {path} is not an image Mitsuba can read (PNG, JPEG, EXR, HDR, ...)") from None
 
 
 def normalise_vertices(vertices: np.ndarray, up: str = "y") -> np.ndarray:
@@ -221,6 +234,8 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
     uv, texture = _find_texture(mesh, mesh_path, opts.texture)
 
     out_dir = out_xml.parent if str(out_xml.parent) else Path(".")
+    # The first missing folder on the way to out_dir: removed again on failure.
+    created = next((p for p in reversed([out_dir.absolute(), *out_dir.absolute().parents]) if not p.exists()), None)
     out_dir.mkdir(parents=True, exist_ok=True)
     mesh_file = f"{mesh_path.stem}.ply"
     if (out_dir / mesh_file).resolve() == mesh_path.resolve():
@@ -230,6 +245,7 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
         staging = Path(tempfile.mkdtemp(prefix=".mitsuba-active-", dir=out_dir))
     except OSError as exc:
         raise UserError(f"cannot write into {out_dir}: {exc.strerror}") from None
+    done = False
     try:
         # Mitsuba's PLY reader takes v as given, OBJ/trimesh UVs have v up: flip.
         write_ply(staging / mesh_file, vertices, mesh.faces, None if uv is None else
@@ -246,8 +262,11 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
         except UserError as exc:  # name the files as the user will find them, not the staging folder
             raise UserError(str(exc).replace(str(staging), str(out_dir))) from None
         move_scene_files(staging, out_dir, out_xml.name)
+        done = True
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+        if not done and created is not None:
+            shutil.rmtree(created, ignore_errors=True)
     return out_xml
 
 

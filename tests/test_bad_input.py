@@ -153,6 +153,27 @@ def test_texture_without_uvs(tmp_path, shared_data, out):
     _assert_nothing_written(out)
 
 
+@pytest.mark.parametrize("texture,needle", [("garbage.png", "not an image"), ("/dev/null", "not a file")])
+def test_texture_that_is_not_an_image(tmp_path, shared_data, out, texture, needle):
+    (tmp_path / "garbage.png").write_text("garbage")
+    code, text = run_cli("scene", shared_data / "meshes" / "spot.obj", "-o", out / "s.xml", "--texture",
+                         tmp_path / texture if texture == "garbage.png" else texture)
+    assert_one_line_error(code, text, needle)
+    assert not out.exists()
+
+
+def test_a_scene_mitsuba_refuses_leaves_no_folders(tmp_path, shared_data, monkeypatch):
+    import mitsuba_active.scene as scene_module
+
+    def refuse(path, **params):
+        raise UserError(f"Mitsuba cannot load {path}")
+
+    monkeypatch.setattr(scene_module, "_load_mitsuba", refuse)
+    with pytest.raises(UserError, match="cannot load"):
+        scene_module.scene_from_mesh(shared_data / "meshes" / "spot.obj", tmp_path / "a" / "b" / "s.xml")
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_zero_field_of_view(spot_xml, out):
     code, text = run_cli("render", spot_xml, "-o", out, "--fov", "0")
     assert_one_line_error(code, text, "field of view")

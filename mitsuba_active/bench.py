@@ -475,7 +475,10 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
 
 
 def _fmt(s: dict) -> str:
-    return "n/a" if s["iqm"] is None else f"{s['iqm']:.2f} ± {s['se']:.2f}"
+    if s["iqm"] is None:
+        return "n/a"
+    # One seed has no spread to estimate: no "± 0.00".
+    return f"{s['iqm']:.2f}" if s["n"] < 2 else f"{s['iqm']:.2f} ± {s['se']:.2f}"
 
 
 def _table(summary: dict, scenes, planners, metric: str, title: str):
@@ -488,7 +491,8 @@ def _table(summary: dict, scenes, planners, metric: str, title: str):
     # One seed count for the whole table, or each cell's own when they differ
     # (a suite still running).
     per_cell = len(counts) > 1
-    seeds = "seeds (n per cell)" if per_cell else f"{max(counts, default=0)} seeds"
+    n = max(counts, default=0)
+    seeds = "seeds (n per cell)" if per_cell else f"{n} seed{'' if n == 1 else 's'}"
     head = ["planner"] + [f"{s} @{v}" for s in scenes for v in views] + ["wall time (s)"]
     lines = [f"## {title}", "", f"Interquartile mean ± standard error over {seeds}, at "
              + " and ".join(map(str, views)) + " views captured.", "",

@@ -48,7 +48,10 @@ def _one_line_errors(fn):
             sys.exit(2)
         except OSError as exc:  # an output folder that cannot be created or written, a full disk...
             where = f"{exc.filename}: " if exc.filename else ""
-            click.echo(f"mitsuba-active: error: {where}{exc.strerror or exc}", err=True)
+            why = exc.strerror or exc
+            if isinstance(exc, (FileExistsError, NotADirectoryError)):
+                why = "a file is in the way of a folder of that name"
+            click.echo(f"mitsuba-active: error: {where}{why}", err=True)
             sys.exit(2)
         except KeyboardInterrupt:
             click.echo("mitsuba-active: interrupted", err=True)
@@ -392,7 +395,7 @@ def bench(suite, out, profile, workers, seeds, planners, scenes, overrides, repo
     summary = run_suite(suite, out, profile, workers, seed_list, split(planners), split(scenes),
                         progress=not quiet, report_only=report_only, overrides=parse_overrides(overrides))
     if not summary["cells"]:
-        click.echo(f"note: no finished runs in {out} yet: no report written", err=True)
+        click.echo(f"note: no finished runs with these settings in {out} yet: no report written", err=True)
     else:
         click.echo(f"tables and plots in {out / 'report'}")
 

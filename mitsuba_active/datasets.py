@@ -605,4 +605,4 @@ def open_source(path, *, rig="auto", n_candidates=100, n_heldout=20, resolution=
         return DatasetSource.from_path(p, downscale=downscale, n_heldout=n_heldout,
                                        n_candidates=n_candidates, resolution=resolution)
     raise UserError(f"{p}: expected a Mitsuba scene (.xml), a transforms .json, or a dataset folder "
-                    "(a mesh becomes a scene with 'mitsuba-active scene')")
+                    "(for a mesh, 'mitsuba-active plan' and 'mitsuba-active scene' author a scene around it)")

@@ -139,6 +139,13 @@ class ActiveViewEnv(gym.Env):
         return blank, self._info()
 
     def step(self, action):
+        """Capture candidate ``action``: returns ``(obs, reward, terminated, truncated, info)``.
+
+        The reward is always 0 (quality is measured by the evaluation
+        protocol of :mod:`mitsuba_active.run`, not by the environment);
+        ``terminated`` once ``budget`` views are captured; never truncated.
+        Capturing a view again (a repeated action) uses up budget again.
+        """
         if not self.action_space.contains(action):
             raise UserError(f"invalid action {action}; expected a candidate index in [0, {self.action_space.n})")
         if self.terminated:
@@ -155,9 +162,14 @@ class ActiveViewEnv(gym.Env):
         """Capture an arbitrary camera-to-world pose (Mitsuba convention) with the candidates' intrinsics.
 
         The view is returned as an observation but not added to the captured set.
+        A pose that is a candidate's or held-out camera's up to single
+        precision (an observation's ``pose`` is float32) gives that camera's view.
         """
+        pose = np.asarray(pose, dtype=np.float64)
+        tol = 1e-6 * max(1.0, float(np.abs(pose).max()))
+        known = [c for c in self.source.candidates + self.source.heldout if np.allclose(c.to_world, pose, rtol=0, atol=tol)]
         ref = self.source.candidates[0]
-        cam = Camera(np.asarray(pose, dtype=np.float64), ref.fov, ref.width, ref.height, ref.near, ref.far)
+        cam = known[0] if known else Camera(pose, ref.fov, ref.width, ref.height, ref.near, ref.far)
         return self._obs(self.source.render(cam))
 
     def restore(self, captured: list[int]) -> None:

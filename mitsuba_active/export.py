@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import warnings
 from pathlib import Path
 
 from .cameras import Camera
@@ -37,6 +38,10 @@ def export_transforms(run_dir, out_dir=None) -> Path:
         raise UserError(f"{rec_path} is not a run record of this tool ({type(exc).__name__}: {exc})") from None
     if not cams:
         raise UserError(f"{run_dir} has no captured views to export")
+    if not rec.get("finished"):
+        budget = (rec.get("config") or {}).get("budget", "?")
+        warnings.warn(f"{run_dir} is an unfinished run: exporting the {len(cams)} of {budget} views captured so far",
+                      stacklevel=2)
     missing = [n for n in range(len(cams)) if not (run_dir / "views" / f"view_{n:03d}.png").is_file()]
     if missing:
         raise UserError(f"{run_dir}/views is missing images for views {missing}")

@@ -124,8 +124,10 @@ class RunConfig:
             (math.isfinite(self.distance_weight) and self.distance_weight >= 0,
              f"the distance weight must be a finite number >= 0, got {self.distance_weight}"),
             (self.rays_per_candidate > 0, "rays per candidate must be positive"),
-            (min(self.initial_steps, self.steps_per_view, self.eval_steps) >= 0, "training steps cannot be negative"),
-            (self.eval_steps > 0, "evaluation steps must be positive"),
+            (min(self.initial_steps, self.steps_per_view) >= 0,
+             f"training steps cannot be negative, got initial_steps={self.initial_steps}, "
+             f"steps_per_view={self.steps_per_view}"),
+            (self.eval_steps > 0, f"evaluation steps must be positive, got {self.eval_steps}"),
         ]
         if n_candidates is not None:
             checks.append((self.budget <= n_candidates, f"the view budget ({self.budget}) is larger than the number "

@@ -96,7 +96,9 @@ def load_mesh(path) -> "trimesh.Trimesh":
     try:
         mesh = trimesh.load(str(path), force="mesh")
     except Exception as exc:
-        raise UserError(f"cannot read mesh {path}: {_one_line(exc)}") from None
+        # A bare KeyError names only the missing key (a glTF buffer, say): say what it is.
+        why = f"{type(exc).__name__}: {_one_line(exc)}" if isinstance(exc, (KeyError, IndexError)) else _one_line(exc)
+        raise UserError(f"cannot read mesh {path}: it is damaged or not a {path.suffix} mesh ({why})") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0 or len(mesh.vertices) == 0:
         raise UserError(f"mesh {path} has no triangles")
     if not np.isfinite(mesh.vertices).all():

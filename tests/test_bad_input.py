@@ -349,7 +349,7 @@ def test_unwritable_output_is_one_line(tmp_path, shared_data):
     blocker = tmp_path / "afile"
     blocker.write_text("")
     code, text = run_cli("scene", shared_data / "meshes" / "suzanne.obj", "-o", blocker / "x.xml")
-    assert_one_line_error(code, text, "afile")
+    assert_one_line_error(code, text, "afile: a file is in the way of a folder of that name")
 
 
 def test_plan_bad_numbers_and_names(spot_xml, tmp_path):

@@ -44,6 +44,9 @@ def test_tables_state_the_seed_count_and_mark_cells_with_fewer_seeds():
     uneven = {"cells": [cell("rfe", 3), cell("even", 2)]}
     md, _ = _table(uneven, ["a"], ["rfe", "even"], "psnr", "PSNR")
     assert "n per cell" in md and "23.00 ± 0.10 (3)" in md and "22.00 ± 0.10 (2)" in md
+    # One seed has no standard error to show.
+    md, _ = _table({"cells": [cell("rfe", 1), cell("even", 1)]}, ["a"], ["rfe", "even"], "psnr", "PSNR")
+    assert "over 1 seed," in md and "| 21.00 |" in md and "±" not in md.split("views captured.")[1]
 
 
 def test_scene_means_margins_and_wins_by_hand():

@@ -38,12 +38,15 @@ def test_reset_step_mask_and_termination(source):
 
 def test_capture_arbitrary_pose(source):
     env = ActiveViewEnv(source, budget=2)
-    env.reset(seed=0)
+    first, _ = env.reset(seed=0)
     pose = source.heldout[0].to_world
     obs = env.capture_pose(pose)
     assert np.allclose(obs["pose"], pose)
     assert np.allclose(obs["rgb"], source.heldout_view(0).rgb)
     assert len(env.captured) == 1
+    # An observation's float32 pose is still that camera: the same view, noise and all.
+    assert first["pose"].dtype == np.float32
+    assert np.array_equal(env.capture_pose(first["pose"])["rgb"], first["rgb"])
 
 
 def test_zero_initial_views_gives_a_blank_observation(source):

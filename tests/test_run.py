@@ -123,6 +123,11 @@ def test_export_round_trips_poses(source, tmp_path):
     assert np.allclose(-gl[:3, 2], cam.forward)  # OpenGL cameras look along -Z
     assert (tmp_path / "ds" / data["frames"][0]["file_path"]).is_file()
     assert (tmp_path / "ds" / data["frames"][0]["distance_file_path"]).is_file()
+    # An unfinished run exports what it has, and says so.
+    rec_path = tmp_path / "r" / "run.json"
+    rec_path.write_text(json.dumps({**rec, "finished": False}))
+    with pytest.warns(UserWarning, match="unfinished run: exporting the 4 of 4 views"):
+        export_transforms(tmp_path / "r", tmp_path / "ds2")
 
 
 def test_rfe_prefers_the_unseen_side(sphere_xml, tmp_path):

@@ -167,7 +167,8 @@ class ActiveViewEnv(gym.Env):
         """
         pose = np.asarray(pose, dtype=np.float64)
         tol = 1e-6 * max(1.0, float(np.abs(pose).max()))
-        known = [c for c in self.source.candidates + self.source.heldout if np.allclose(c.to_world, pose, rtol=0, atol=tol)]
+        known = [c for c in self.source.candidates + self.source.heldout
+                 if np.allclose(c.to_world, pose, rtol=0, atol=tol)]
         ref = self.source.candidates[0]
         cam = known[0] if known else Camera(pose, ref.fov, ref.width, ref.height, ref.near, ref.far)
         return self._obs(self.source.render(cam))

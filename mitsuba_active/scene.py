@@ -242,13 +242,12 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
     mesh_file = f"{mesh_path.stem}.ply"
     if (out_dir / mesh_file).resolve() == mesh_path.resolve():
         mesh_file = f"{mesh_path.stem}_scene.ply"  # never overwrite the user's own mesh
-    tex_file = None
+    tex_file, staging, done = None, None, False
     try:
-        staging = Path(tempfile.mkdtemp(prefix=".mitsuba-active-", dir=out_dir))
-    except OSError as exc:
-        raise UserError(f"cannot write into {out_dir}: {exc.strerror}") from None
-    done = False
-    try:
+        try:
+            staging = Path(tempfile.mkdtemp(prefix=".mitsuba-active-", dir=out_dir))
+        except OSError as exc:
+            raise UserError(f"cannot write into {out_dir}: {exc.strerror}") from None
         # Mitsuba's PLY reader takes v as given, OBJ/trimesh UVs have v up: flip.
         write_ply(staging / mesh_file, vertices, mesh.faces, None if uv is None else
                   np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1))
@@ -266,7 +265,8 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
         move_scene_files(staging, out_dir, out_xml.name)
         done = True
     finally:
-        shutil.rmtree(staging, ignore_errors=True)
+        if staging is not None:
+            shutil.rmtree(staging, ignore_errors=True)
         if not done and created is not None:
             shutil.rmtree(created, ignore_errors=True)
     return out_xml

@@ -25,6 +25,9 @@ over scenes gives each planner's margin over ``random`` and ``even``.
 from __future__ import annotations
 
 import json
+import os
+import signal
+import threading
 import time
 import tomllib
 from dataclasses import asdict, dataclass, field, fields
@@ -280,9 +283,6 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
     ``report_only`` runs nothing and reports the runs finished so far (safe
     while another process is still running the suite). ``overrides``
     (:func:`parse_overrides`) change every run's settings."""
-    import multiprocessing as mp
-    import os
-
     from tqdm import tqdm
 
     suite = load_suite(suite_path)
@@ -302,38 +302,61 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
                 run_job(job)
                 bar.update()
         else:
-            # Dr.Jit must not be forked once initialised: workers are fresh processes.
-            pool = mp.get_context("spawn").Pool(workers, initializer=_init_worker)
-            try:
-                for status in pool.imap_unordered(_run_job_star, [(j, threads) for j in jobs]):
-                    bar.set_postfix_str(status["job"])
-                    bar.update()
-                pool.close()
-            except BaseException:  # Ctrl-C, or a failed job
-                pool.terminate()
-                raise
-            finally:
-                pool.join()
+            _run_in_workers(jobs, workers, threads, bar)
     finally:
         bar.close()
     return write_report(suite, jobs, out_dir / "report", profile, overrides)
 
 
-def _init_worker():
+def _run_in_workers(jobs: list[Job], workers: int, threads: int, bar) -> None:
+    """Run the jobs in ``workers`` fresh processes (Dr.Jit must not be forked
+    once initialised); Ctrl-C stops them all and is raised here."""
+    import multiprocessing as mp
+
+    # The workers are made with Ctrl-C ignored, a disposition they keep through
+    # their start, so that one pressed while they import prints no tracebacks.
+    # (Only a Ctrl-C within the few milliseconds of making them is lost.)
+    main_thread = threading.current_thread() is threading.main_thread()
+    pool = None
+    try:
+        handler = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
+        try:
+            pool = mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(os.getpid(),))
+        finally:
+            if handler is not None:
+                signal.signal(signal.SIGINT, handler)
+        for status in pool.imap_unordered(_run_job_star, [(j, threads) for j in jobs]):
+            bar.set_postfix_str(status["job"])
+            bar.update()
+        pool.close()
+    except BaseException:  # Ctrl-C, or a failed job
+        if pool is not None:
+            pool.terminate()
+        raise
+    finally:
+        if pool is not None:
+            pool.join()
+
+
+def _init_worker(parent: int):
     """Ctrl-C is the parent's to handle: it stops the workers (SIGTERM), and a
     stopped worker exits through its ``finally`` blocks, so no temporary file
-    is left. tqdm's lock is a thread lock here: its default, a
+    is left. A worker whose parent is gone (killed outright) stops itself the
+    same way. tqdm's lock is a thread lock here: its default, a
     multiprocessing lock, would be reported as leaked when a worker stops."""
-    import signal
-    import threading
-
     from tqdm import tqdm
 
     def stop(signum, frame):
         raise SystemExit(1)
 
+    def watch_parent():
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os.kill(os.getpid(), signal.SIGTERM)
+
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, stop)
+    threading.Thread(target=watch_parent, daemon=True).start()
     tqdm.set_lock(threading.RLock())
 
 
@@ -492,10 +515,14 @@ def _table(summary: dict, scenes, planners, metric: str, title: str):
     # (a suite still running).
     per_cell = len(counts) > 1
     n = max(counts, default=0)
-    seeds = "seeds (n per cell)" if per_cell else f"{n} seed{'' if n == 1 else 's'}"
+    if per_cell:
+        stat = "Interquartile mean ± standard error over seeds (n per cell)"
+    elif n == 1:
+        stat = "One seed (no standard error)"
+    else:
+        stat = f"Interquartile mean ± standard error over {n} seeds"
     head = ["planner"] + [f"{s} @{v}" for s in scenes for v in views] + ["wall time (s)"]
-    lines = [f"## {title}", "", f"Interquartile mean ± standard error over {seeds}, at "
-             + " and ".join(map(str, views)) + " views captured.", "",
+    lines = [f"## {title}", "", f"{stat}, at " + " and ".join(map(str, views)) + " views captured.", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     csv_rows = [["planner", "scene", "views", "iqm", "se", "n"]]
     for p in planners:

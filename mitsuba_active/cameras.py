@@ -254,11 +254,12 @@ def interior(n, bbox_min, bbox_max, fov=70.0, width=64, height=64, offset=0.0, s
 RIG_KINDS = ("auto", "sphere", "hemisphere", "rings", "interior", "xml")
 
 
-def clip_range(radius: float) -> tuple[float, float]:
-    """Near and far clip distances (scene units) for cameras around or inside
-    a scene of this bounding radius: 1e-3 and 1e4 unless the scene is so small
-    or so large that they would cut into it."""
-    return min(1e-3, 1e-2 * radius), max(1e4, 100.0 * radius)
+def clip_range(radius: float, reach: float) -> tuple[float, float]:
+    """Near and far clip distances (scene units) for cameras of a scene of
+    this bounding ``radius`` that see at most ``reach`` far: 1e-3 and 1e4
+    unless the scene is so small or so large that they would cut into it
+    (the defaults stay, so existing ground truth keeps its cache keys)."""
+    return min(1e-3, 1e-2 * radius), max(1e4, 2.0 * reach)
 
 
 def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, height=None, fov=None):
@@ -277,11 +278,11 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     if rig not in RIG_KINDS:
         raise UserError(f"unknown rig '{rig}'; choose one of {', '.join(RIG_KINDS)}")
     generated = rig
-    near, far = clip_range(scene.radius)
     if rig in ("auto", "xml"):  # the XML's own sensors get held-out views of the right kind
         generated = "interior" if scene.interior else "sphere"
     if generated == "interior":
         fov = 70.0 if fov is None else fov
+        near, far = clip_range(scene.radius, 2.0 * scene.radius)
 
         def make(n, off):
             # Over-generate, then drop cameras that would sit inside furniture.
@@ -297,6 +298,7 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
         if not 0.0 < fov < 180.0:
             raise UserError(f"field of view must be in (0, 180) degrees, got {fov}")
         radius = 1.05 * scene.radius / math.sin(math.radians(fov) / 2)
+        near, far = clip_range(scene.radius, radius + scene.radius)
         fn = {"sphere": fibonacci_sphere, "hemisphere": hemisphere, "rings": rings}[generated]
         make = lambda n, off: fn(n, scene.center, radius, fov, width, height, off, up=scene.up,  # noqa: E731
                                  near=near, far=far)

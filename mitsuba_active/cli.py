@@ -10,9 +10,9 @@ from __future__ import annotations
 import functools
 import json
 import re
-import shutil
 import signal
 import sys
+import threading
 import warnings
 from pathlib import Path
 
@@ -20,6 +20,7 @@ import click
 from click.core import ParameterSource
 
 from .errors import UserError
+from .imageio_utils import new_entries, remove_new
 
 from .scenes import BUNDLED_SCENE
 
@@ -31,14 +32,29 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
 
 def _stop(signum, frame):
     # SIGTERM (timeout, kill, a job scheduler) stops a command as Ctrl-C does:
-    # through its clean-up, not halfway through writing its output.
+    # through its clean-up, not halfway through writing its output; a second
+    # one does not interrupt that clean-up.
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     raise KeyboardInterrupt
+
+
+def _os_error_line(exc: OSError) -> str:
+    """One line for a failed file operation; names the file that stands where a folder must be."""
+    if isinstance(exc, (FileExistsError, NotADirectoryError)) and exc.filename:
+        path = Path(exc.filename)
+        blocker = next((p for p in [path, *path.parents] if p.is_file()), None)
+        if blocker is not None:
+            return f"{blocker} is a file, where a folder is needed"
+    where = f"{exc.filename}: " if exc.filename else ""
+    return f"{where}{exc.strerror or exc}"
 
 
 def _one_line_errors(fn):
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        previous = signal.signal(signal.SIGTERM, _stop)
+        # Signal handlers belong to the main thread (a command may be invoked from another).
+        handled = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGTERM, _stop) if handled else None
         try:
             with warnings.catch_warnings():
                 warnings.showwarning = _show_warning
@@ -47,17 +63,14 @@ def _one_line_errors(fn):
             click.echo(f"mitsuba-active: error: {exc}", err=True)
             sys.exit(2)
         except OSError as exc:  # an output folder that cannot be created or written, a full disk...
-            where = f"{exc.filename}: " if exc.filename else ""
-            why = exc.strerror or exc
-            if isinstance(exc, (FileExistsError, NotADirectoryError)):
-                why = "a file is in the way of a folder of that name"
-            click.echo(f"mitsuba-active: error: {where}{why}", err=True)
+            click.echo(f"mitsuba-active: error: {_os_error_line(exc)}", err=True)
             sys.exit(2)
         except KeyboardInterrupt:
             click.echo("mitsuba-active: interrupted", err=True)
             sys.exit(130)
         finally:
-            signal.signal(signal.SIGTERM, previous)
+            if handled:  # None: a handler not set from Python, which cannot be put back
+                signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
     return wrapper
 
 
@@ -133,7 +146,7 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
             raise UserError(f"--views must be positive, got {views}")
         cams = cams[:views]
     out = Path(out)
-    new = _new_entries(out)
+    new = new_entries(out)
     out.mkdir(parents=True, exist_ok=True)
     records = []
     try:
@@ -148,7 +161,7 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
             tmp.write_text(json.dumps({"scene": str(source.scene.path), "split": split, "views": records},
                                       indent=1))
     except BaseException:
-        _remove_new(out, *new)  # views without their cameras.json are no use to anyone
+        remove_new(out, *new)  # views without their cameras.json are no use to anyone
         raise
     click.echo(f"wrote {len(cams)} views to {out}")
 
@@ -225,7 +238,7 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
 
     scene_path = str(scene_path or BUNDLED_SCENE)
     given = _given_options()
-    if planner != "rfe" and score_form != "sum":
+    if planner != "rfe" and "score_form" in given:
         raise UserError(f"--score applies to the rfe planner only, not to {planner}")
     parsed = _parse_options(planner_option)
     if "score_form" in given and "form" in parsed:
@@ -250,7 +263,7 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
         cfg.eval_steps = eval_steps
     cfg.validate()
     out = Path(out) if out else default_out_dir(scene_path, planner, seed)
-    new = _new_entries(out)
+    new = new_entries(out)
     try:
         if Path(scene_path).suffix.lower() in MESH_SUFFIXES:
             scene_path = cfg.scene = _author_into_run(scene_path, out)
@@ -259,31 +272,11 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
         # Without run.json there is nothing to resume: leave nothing half-made
         # behind (an existing folder keeps what it held).
         if not (out / "run.json").is_file():
-            _remove_new(out, *new)
+            remove_new(out, *new)
         raise
     rows = ", ".join(f"{m['views']}: {m['psnr']:.2f} dB" for m in record["metrics"])
     click.echo(f"held-out PSNR by views captured: {rows}")
     click.echo(f"results in {out}")
-
-
-def _new_entries(out: Path):
-    """What a command may remove if it fails: ``(top, before)``, where ``top`` is
-    the first of ``out`` and its parents that does not exist yet (None if ``out``
-    exists) and ``before`` what ``out`` holds now."""
-    top, p = None, out.absolute()
-    while not p.exists():
-        top, p = p, p.parent
-    return top, (set(out.iterdir()) if top is None and out.is_dir() else set())
-
-
-def _remove_new(out: Path, top, before) -> None:
-    """Undo what a failed command wrote: the folders it created, or the entries
-    it added to a folder that was there."""
-    if top is not None:
-        shutil.rmtree(top, ignore_errors=True)
-    elif out.is_dir():
-        for p in set(out.iterdir()) - before:
-            shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
 
 
 def _author_into_run(mesh, out: Path) -> str:

@@ -166,9 +166,11 @@ class ActiveViewEnv(gym.Env):
         precision (an observation's ``pose`` is float32) gives that camera's view.
         """
         pose = np.asarray(pose, dtype=np.float64)
-        tol = 1e-6 * max(1.0, float(np.abs(pose).max()))
+        # Single precision: 1e-6 on the rotation, relative to the position's size on the position.
+        tol = 1e-6 * max(1.0, float(np.abs(pose[:3, 3]).max()))
         known = [c for c in self.source.candidates + self.source.heldout
-                 if np.allclose(c.to_world, pose, rtol=0, atol=tol)]
+                 if np.allclose(c.to_world[:3, :3], pose[:3, :3], rtol=0, atol=1e-6)
+                 and np.allclose(c.to_world[:3, 3], pose[:3, 3], rtol=0, atol=tol)]
         ref = self.source.candidates[0]
         cam = known[0] if known else Camera(pose, ref.fov, ref.width, ref.height, ref.near, ref.far)
         return self._obs(self.source.render(cam))

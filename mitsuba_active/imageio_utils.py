@@ -2,12 +2,14 @@
 
 Every writer goes through :func:`atomic_write`: the file appears whole under
 its final name or not at all, so an interrupted run leaves nothing half-written.
+:func:`new_entries` and :func:`remove_new` undo what a failed command added.
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -28,6 +30,26 @@ def atomic_write(path, suffix=""):
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
+
+
+def new_entries(out: Path):
+    """What a command may remove if it fails: ``(top, before)``, where ``top`` is
+    the first of ``out`` and its parents that does not exist yet (None if ``out``
+    exists) and ``before`` what ``out`` holds now."""
+    top, p = None, out.absolute()
+    while not p.exists():
+        top, p = p, p.parent
+    return top, (set(out.iterdir()) if top is None and out.is_dir() else set())
+
+
+def remove_new(out: Path, top, before) -> None:
+    """Undo what a failed command wrote: the folders it created, or the entries
+    it added to a folder that was there."""
+    if top is not None:
+        shutil.rmtree(top, ignore_errors=True)
+    elif out.is_dir():
+        for p in set(out.iterdir()) - before:
+            shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
 
 
 def _umask() -> int:

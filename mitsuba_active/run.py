@@ -332,17 +332,18 @@ class Run:
                 raise UserError(f"{self.record_path} is damaged ({exc}); remove it to start over") from None
             if not isinstance(rec, dict):
                 raise UserError(f"{self.record_path} is not a run record; remove it to start over")
-            # Scenes and datasets are compared by content below, not by path.
-            changed = config_differences(rec.get("config"), self._config_dict(),
-                                         compare_scene=self._content_hash() is None)
+            # Scenes and datasets are compared by content, not by path; a record
+            # without a digest (a dataset's, from before datasets had one) by path.
+            by_content = rec.get("content_hash") is not None and self._content_hash() is not None
+            changed = config_differences(rec.get("config"), self._config_dict(), compare_scene=not by_content)
             if changed:
                 more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
                 raise UserError(f"{self.out} holds a run with other settings ({'; '.join(changed[:3])}{more}); "
                                 "choose another --out folder")
-            if (rec.get("content_hash") != self._content_hash()
+            if ((by_content and rec["content_hash"] != self._content_hash())
                     or rec.get("candidates") != [c.to_dict() for c in self.source.candidates]
                     or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):
-                raise UserError(f"{self.out} holds a run of a scene that has changed since; "
+                raise UserError(f"{self.out} holds a run of a scene or dataset that has changed since; "
                                 "choose another --out folder")
             self.record = rec
             return True

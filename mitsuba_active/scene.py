@@ -22,6 +22,7 @@ import numpy as np
 
 from .checks import is_number, is_whole
 from .errors import UserError
+from .imageio_utils import new_entries, remove_new
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
 TEXTURE_NAMES = ("{stem}_texture.png", "{stem}_texture.jpg", "{stem}.png", "{stem}.jpg", "{stem}_diffuse.png")
@@ -236,8 +237,7 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
     uv, texture = _find_texture(mesh, mesh_path, opts.texture)
 
     out_dir = out_xml.parent if str(out_xml.parent) else Path(".")
-    # The first missing folder on the way to out_dir: removed again on failure.
-    created = next((p for p in reversed([out_dir.absolute(), *out_dir.absolute().parents]) if not p.exists()), None)
+    added = new_entries(out_dir)  # undone on failure
     out_dir.mkdir(parents=True, exist_ok=True)
     mesh_file = f"{mesh_path.stem}.ply"
     if (out_dir / mesh_file).resolve() == mesh_path.resolve():
@@ -267,8 +267,8 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
     finally:
         if staging is not None:
             shutil.rmtree(staging, ignore_errors=True)
-        if not done and created is not None:
-            shutil.rmtree(created, ignore_errors=True)
+        if not done:
+            remove_new(out_dir, *added)
     return out_xml
 
 

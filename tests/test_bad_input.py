@@ -349,7 +349,10 @@ def test_unwritable_output_is_one_line(tmp_path, shared_data):
     blocker = tmp_path / "afile"
     blocker.write_text("")
     code, text = run_cli("scene", shared_data / "meshes" / "suzanne.obj", "-o", blocker / "x.xml")
-    assert_one_line_error(code, text, "afile: a file is in the way of a folder of that name")
+    assert_one_line_error(code, text, f"{blocker} is a file, where a folder is needed")
+    # Deeper under the file: still the file is named.
+    code, text = run_cli("scene", shared_data / "meshes" / "suzanne.obj", "-o", blocker / "a" / "b" / "x.xml")
+    assert_one_line_error(code, text, f"{blocker} is a file, where a folder is needed")
 
 
 def test_plan_bad_numbers_and_names(spot_xml, tmp_path):
@@ -441,7 +444,11 @@ def test_sigterm_stops_plan_like_ctrl_c(tmp_path, spot_xml):
     while not list(out.glob("views/*.png")) and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.1)
     proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=120)
+    try:
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
     assert proc.returncode == 130 and err.strip().splitlines()[-1] == "mitsuba-active: interrupted", err
     assert not out.exists()
 
@@ -450,6 +457,7 @@ def test_sigterm_stops_plan_like_ctrl_c(tmp_path, spot_xml):
     (["--planner", "even", "--ensemble", "3"], "trains no ensemble"),
     (["--planner", "fisher", "--ensemble", "3"], "trains 1 field"),
     (["--score", "sum", "--planner-option", "form=log"], "give rfe's score once"),
+    (["--planner", "even", "--score", "sum"], "applies to the rfe planner only"),
 ])
 def test_plan_options_that_do_not_apply_are_refused(spot_xml, tmp_path, args, needle):
     out = tmp_path / "o"

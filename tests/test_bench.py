@@ -46,7 +46,7 @@ def test_tables_state_the_seed_count_and_mark_cells_with_fewer_seeds():
     assert "n per cell" in md and "23.00 ± 0.10 (3)" in md and "22.00 ± 0.10 (2)" in md
     # One seed has no standard error to show.
     md, _ = _table({"cells": [cell("rfe", 1), cell("even", 1)]}, ["a"], ["rfe", "even"], "psnr", "PSNR")
-    assert "over 1 seed," in md and "| 21.00 |" in md and "±" not in md.split("views captured.")[1]
+    assert "One seed (no standard error), at" in md and "| 21.00 |" in md and "±" not in md
 
 
 def test_scene_means_margins_and_wins_by_hand():
@@ -144,7 +144,7 @@ def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
     assert len(summary["cells"]) == 4 and all(c["seeds"] == 1 for c in summary["cells"])
     report = out / "report"
     table = (report / "table_psnr.md").read_text()
-    assert "| rfe |" in table and "ball @4" in table and "±" in table
+    assert "| rfe |" in table and "ball @4" in table and "One seed (no standard error)" in table and "±" not in table
     assert (report / "table_distance_error.csv").is_file() and (report / "results.json").is_file()
     assert "vs even @4" in (report / "table_mean.md").read_text()
     assert json.loads((report / "results.json").read_text())["mean_over_scenes"]["psnr"]["rfe"]["scenes"] == 2
@@ -340,28 +340,53 @@ def test_interior_distance_suite_differs_only_by_the_distance_loss():
     assert with_distance.run_options == {"rig": "interior", "distance_weight": INTERIOR_DISTANCE_WEIGHT}
 
 
-def test_ctrl_c_stops_parallel_workers_cleanly(tiny_suite, tmp_path):
+def _spawned_workers(parent: int) -> list[int]:
+    """Process ids of the multiprocessing workers that ``parent`` has spawned (Linux /proc)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            ppid = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            if ppid == parent and b"spawn_main" in (entry / "cmdline").read_bytes():
+                found.append(int(entry.name))
+        except (OSError, ValueError, IndexError):
+            continue
+    return found
+
+
+@pytest.mark.parametrize("when", ["starting", "running"])
+def test_ctrl_c_stops_parallel_workers_cleanly(tiny_suite, tmp_path, when):
     """Ctrl-C (SIGINT to the whole process group, as a terminal sends it)
-    during ``bench --workers 2``: one line, exit 130, no leaked-semaphore
-    warning, no temporary files."""
+    during ``bench --workers 2``, while the workers start or while they run:
+    one line, exit 130, no traceback or leaked-semaphore warning, no
+    temporary files (in the suite or the ground-truth cache)."""
     import os
     import signal
     import subprocess
     import sys
     import time
 
-    out = tmp_path / "out"
+    out, cache = tmp_path / "out", tmp_path / "cache"
     # Long runs, so that the suite is still running when it is interrupted.
     cmd = [sys.executable, "-m", "mitsuba_active", "bench", str(tiny_suite), "--out", str(out), "--workers", "2",
            "--quiet", "--set", "steps_per_view=100000"]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env={**os.environ, "MITSUBA_ACTIVE_CACHE": str(cache)})
     deadline = time.monotonic() + 120
-    while not list(out.glob("runs/*/*/run.json")) and time.monotonic() < deadline and proc.poll() is None:
+    if when == "starting":  # as soon as both workers exist: they are still importing
+        while len(_spawned_workers(proc.pid)) < 2 and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.02)
         time.sleep(0.2)
-    time.sleep(1.0)
+    else:
+        while not list(out.glob("runs/*/*/run.json")) and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+        time.sleep(1.0)
     os.killpg(proc.pid, signal.SIGINT)
-    _, err = proc.communicate(timeout=120)
+    try:
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:  # never leave a suite running behind a failed test
+            os.killpg(proc.pid, signal.SIGKILL)
     assert proc.returncode == 130, err
     assert err.strip().splitlines()[-1] == "mitsuba-active: interrupted", err
     assert "leaked" not in err and "Traceback" not in err, err
-    assert not [p for p in out.rglob(".*")]
+    assert not [p for p in out.rglob(".*")] and not [p for p in cache.rglob(".*")]

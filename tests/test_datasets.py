@@ -387,3 +387,9 @@ def test_a_run_of_a_dataset_without_depth_exports_no_distances(tmp_path, mic_dir
                 RunConfig(**{**cfg.__dict__, "scene": train_json}), tmp_path / "run", progress=False,
                 log=lambda m: None).execute()
     assert again["finished"] and again["captured"] == rec["captured"]
+    # A record from before datasets had a digest is matched by its path, as then.
+    path = tmp_path / "run" / "run.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), "content_hash": None}))
+    old = Run(open_source(mic_dir, n_candidates=6, n_heldout=2, resolution=25), cfg, tmp_path / "run",
+              progress=False, log=lambda m: None).execute()
+    assert old["finished"] and old["captured"] == rec["captured"]

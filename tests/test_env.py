@@ -61,3 +61,22 @@ def test_impossible_budgets(source):
         ActiveViewEnv(source, budget=0)
     with pytest.raises(UserError):
         ActiveViewEnv(source, budget=2).reset(options={"initial_views": 3})
+
+
+def test_capture_pose_snaps_only_to_the_same_camera(tmp_path):
+    """In a large scene (positions ~1e6) a pose turned by 30 degrees is a new
+    camera, not the candidate it shares a position with."""
+    from mitsuba_active.env import SceneSource
+
+    xml = tmp_path / "big.xml"
+    xml.write_text('<scene version="3.0.0"><shape type="sphere"><float name="radius" value="1e6"/></shape>'
+                   '<emitter type="constant"/></scene>')
+    src = SceneSource.from_xml(xml, n_candidates=4, n_heldout=2, resolution=8, spp=1, cache_dir=False)
+    env = ActiveViewEnv(src, budget=2)
+    env.reset(seed=0)
+    pose = src.candidates[0].to_world.copy()
+    c, s = np.cos(np.radians(30)), np.sin(np.radians(30))
+    pose[:3, :3] = pose[:3, :3] @ np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    assert np.allclose(env.capture_pose(pose)["pose"], pose, atol=1e-3)
+    assert np.allclose(env.capture_pose(src.candidates[0].to_world.astype(np.float32))["pose"],
+                       src.candidates[0].to_world, atol=1e-3)

@@ -28,7 +28,8 @@ from .occupancy import DECAY, cell_opacity
 from .render import FieldParams, hash_u32, render_flat, render_members, uniform_from_u32
 
 
-#: Least side of the fields' box, as a fraction of its longest side.
+#: Side given to the fields' box where the object is flat (a side at most
+#: 1e-6 of the longest), as a fraction of the longest side.
 MIN_BOX_SIDE = 0.05
 
 
@@ -43,8 +44,8 @@ class Ensemble:
     Args:
         bbox_min, bbox_max: array-likes of 3 floats (scene units), the
             region the fields live in (padded by ``config.bbox_padding``;
-            a side shorter than ``MIN_BOX_SIDE`` of the longest, as of a
-            flat object, is widened to that first).
+            a flat object's zero side is first widened to ``MIN_BOX_SIDE``
+            of the longest).
         n_members: K.
         config: :class:`FieldConfig` (defaults if None).
         seed: base seed; member k is initialised from ``(seed, k)``.
@@ -68,7 +69,8 @@ class Ensemble:
         box_min, box_max = self.bbox_min - pad, self.bbox_max + pad
         # A flat object (a sign, a single triangle) has no depth along some
         # axis; the field's box gets MIN_BOX_SIDE of the longest side there.
-        flat = extent < MIN_BOX_SIDE * extent.max()
+        # Thin but not flat boxes stay as they are (saved ensembles keep their box).
+        flat = extent <= 1e-6 * extent.max()
         if flat.any():
             centre = 0.5 * (self.bbox_min + self.bbox_max)
             half = 0.5 * MIN_BOX_SIDE * extent.max() * (1.0 + 2.0 * self.config.bbox_padding)

@@ -203,6 +203,14 @@ def config_differences(recorded, current: dict, compare_scene: bool = True) -> l
         config = dict(config)
         if isinstance(config.get("eval_views"), list):  # the same counts in any order
             config["eval_views"] = sorted(set(config["eval_views"]))
+        # The fields a planner actually trains: none for even (any --ensemble
+        # then is the same run), one for fisher.
+        try:
+            planner = make_planner(config.get("planner"), **dict(config.get("planner_options") or {}))
+        except (UserError, TypeError, ValueError):  # not a record of this tool's planners
+            planner = None
+        if planner is not None and is_whole(config.get("ensemble")):
+            config["ensemble"] = planner.ensemble_size(config["ensemble"]) if planner.needs_ensemble else None
         scene = config.pop("scene", None)
         if compare_scene:
             config["scene"] = str(Path(scene).resolve()) if scene else scene

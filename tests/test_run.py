@@ -111,6 +111,19 @@ def test_interrupted_run_resumes_without_redoing_rounds(source, tmp_path, monkey
         _run(source, tmp_path / "cut", planner="even", budget=5)
 
 
+def test_ensemble_size_counts_only_where_a_planner_trains_one(source, tmp_path):
+    from mitsuba_active.run import config_differences
+
+    def cfg(planner, ensemble):
+        return {**TINY, "scene": "s.xml", "planner": planner, "planner_options": {}, "ensemble": ensemble}
+
+    assert config_differences(cfg("even", 3), cfg("even", 2)) == []
+    assert config_differences(cfg("fisher", 3), cfg("fisher", 1)) == []
+    assert config_differences(cfg("rfe", 3), cfg("rfe", 2)) == ["ensemble: 3 -> 2"]
+    done = _run(source, tmp_path / "e", planner="even", ensemble=3)
+    assert _run(source, tmp_path / "e", planner="even", ensemble=2)["captured"] == done["captured"]
+
+
 def test_export_round_trips_poses(source, tmp_path):
     rec = _run(source, tmp_path / "r", planner="coverage")
     path = export_transforms(tmp_path / "r", tmp_path / "ds")

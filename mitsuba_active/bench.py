@@ -323,8 +323,8 @@ def _run_in_workers(jobs: list[Job], workers: int, threads: int, bar) -> None:
         try:
             pool = mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(os.getpid(),))
         finally:
-            if handler is not None:
-                signal.signal(signal.SIGINT, handler)
+            if main_thread:  # None: a handler not set from Python, which cannot be put back
+                signal.signal(signal.SIGINT, signal.default_int_handler if handler is None else handler)
         for status in pool.imap_unordered(_run_job_star, [(j, threads) for j in jobs]):
             bar.set_postfix_str(status["job"])
             bar.update()

@@ -21,7 +21,6 @@ from click.core import ParameterSource
 
 from .errors import UserError
 from .imageio_utils import new_entries, remove_new
-
 from .scenes import BUNDLED_SCENE
 
 

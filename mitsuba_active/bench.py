@@ -347,6 +347,7 @@ def _init_worker(parent: int):
     from tqdm import tqdm
 
     def stop(signum, frame):
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # one stop; its clean-up is not cut short
         raise SystemExit(1)
 
     def watch_parent():

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import contextlib
 import os
+import secrets
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -18,17 +18,20 @@ import numpy as np
 
 @contextlib.contextmanager
 def atomic_write(path, suffix=""):
-    """Yield a temporary path in the same folder; rename it onto ``path`` on success."""
+    """Yield a temporary path in the same folder for the caller to write;
+    rename it onto ``path`` on success, remove it otherwise.
+
+    The name is chosen before anything is created, so an interruption at any
+    point (Ctrl-C, a stopped worker) leaves no temporary file behind.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix or path.suffix, dir=path.parent)
-    os.close(fd)
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(6)}{suffix or path.suffix}")
     try:
-        yield Path(tmp)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; give the usual permissions
+        yield tmp
         os.replace(tmp, path)
     finally:
-        if os.path.exists(tmp):
+        if os.path.lexists(tmp):
             os.unlink(tmp)
 
 
@@ -50,12 +53,6 @@ def remove_new(out: Path, top, before) -> None:
     elif out.is_dir():
         for p in set(out.iterdir()) - before:
             shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def write_exr(path, channels: dict[str, np.ndarray]) -> None:

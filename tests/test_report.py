@@ -27,3 +27,24 @@ def test_camera_plot_of_a_run_with_repeats(tmp_path):
     assert image.ndim == 3 and image.shape[0] > 100 and image.std() > 0
     # Without held-out views or captures (a run that has not chosen anything yet).
     assert plot_views(cams, [], [], [-0.5] * 3, [0.5] * 3, tmp_path / "empty.png").is_file()
+
+
+def test_atomic_write_leaves_the_file_whole_or_absent(tmp_path):
+    import os
+
+    import pytest
+
+    from mitsuba_active.imageio_utils import atomic_write
+
+    target = tmp_path / "a" / "out.json"
+    with pytest.raises(KeyboardInterrupt):
+        with atomic_write(target) as tmp:
+            tmp.write_text("half")
+            raise KeyboardInterrupt
+    assert not target.exists() and list((tmp_path / "a").iterdir()) == []
+    with atomic_write(target) as tmp:
+        tmp.write_text("whole")
+    assert target.read_text() == "whole" and list((tmp_path / "a").iterdir()) == [target]
+    mask = os.umask(0)
+    os.umask(mask)
+    assert target.stat().st_mode & 0o777 == 0o666 & ~mask  # the usual permissions, not a temp file's 0600

@@ -297,3 +297,15 @@ def test_config_from_option_strings():
                          (["n_levels=two"], "must be of type int"), (["n_levels=0"], ">= 1")):
         with pytest.raises(UserError, match=message):
             FieldConfig.from_options(bad)
+
+
+@pytest.mark.parametrize("change,message", [
+    (lambda o, d, c: (o, d, c * 255), "divide 8-bit colours by 255"),
+    (lambda o, d, c: (o, d * 2, c), "unit vectors"),
+    (lambda o, d, c: (o, d, np.where(np.arange(len(c))[:, None] == 0, np.nan, c)), "finite"),
+])
+def test_rays_that_would_spoil_training_are_refused(change, message):
+    o, d, c, dist, hit = views([[0.0, 0.3, 2.2]], width=8, height=8)
+    ens = Ensemble(*BOX, n_members=1, config=tiny_config(), seed=0)
+    with pytest.raises(UserError, match=message):
+        ens.set_rays(*change(np.asarray(o), np.asarray(d), np.asarray(c)), dist, hit)

@@ -164,6 +164,16 @@ class Ensemble:
             raise UserError("set_rays: no rays")
         if m >= 2**31:
             raise UserError("set_rays: too many rays (max 2^31)")
+        # Bad rays would only show later, as a diverged loss or NaN distances.
+        if not (np.isfinite(o).all() and np.isfinite(d).all() and np.isfinite(c).all()):
+            raise UserError("set_rays: origins, directions and rgb must be finite numbers")
+        norms = np.linalg.norm(d, axis=1)
+        if np.abs(norms - 1.0).max() > 1e-3:
+            raise UserError(f"set_rays: directions must be unit vectors (lengths from {norms.min():.4g} "
+                            f"to {norms.max():.4g})")
+        if c.min() < -1e-3 or c.max() > 1.0 + 1e-3:
+            raise UserError(f"set_rays: rgb must lie in [0, 1] (got {c.min():.4g} to {c.max():.4g}; "
+                            "divide 8-bit colours by 255)")
         dist = np.where(h, np.nan_to_num(dist), 0.0).astype(np.float32)
         self._rays = dict(o=mi.Point3f(o.T), d=mi.Vector3f(d.T), rgb=mi.Color3f(c.T),
                           distance=mi.Float(dist), hit=mi.Bool(h))
@@ -306,8 +316,8 @@ class Ensemble:
             if not np.all(np.isfinite(both)):
                 if bar is not None:
                     bar.close()
-                raise UserError(f"training diverged at step {self._step} (loss {value}); "
-                                "lower FieldConfig.lr")
+                raise UserError(f"training diverged at step {self._step} (loss {value}); lower FieldConfig.lr "
+                                "and start from a new ensemble (this one's parameters are no longer finite)")
             if bar is not None and (j % 10 == 0):
                 bar.set_postfix(mse=f"{value:.4g}")
         return losses

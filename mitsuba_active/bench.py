@@ -194,14 +194,15 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
 
     ``overrides`` (see :func:`parse_overrides`) win over the suite's and the
     scenes' settings. Every job's settings are checked before anything is
-    written. A mesh scene is authored anew each time (``author``), so that
-    edited scene options take effect; authoring is deterministic, so unchanged
-    scenes keep their content hash and their finished runs. Without ``author``
-    (reports only) the scenes are left as they are.
+    written. A mesh scene is authored anew each time (``author``);
+    authoring is deterministic, so unchanged scenes keep their content hash
+    and their finished runs. A folder whose runs were made with another scene
+    or other settings is refused before anything is replaced or run. Without
+    ``author`` (reports only) the scenes are left as they are.
     """
     from .planners import make_planner
     from .run import RunConfig, field_config
-    from .scene import content_hash, scene_from_mesh
+    from .scene import content_hash
 
     if profile not in PROFILES:
         raise UserError(f"unknown profile '{profile}'; use quick or full")
@@ -247,11 +248,61 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
     if author:
         for sc in suite.scenes:
             if sc.name in meshes:
-                scene_from_mesh(sc.path, meshes[sc.name], **sc.scene_options)
+                _author_suite_scene(sc, meshes[sc.name], [j for j in jobs if j.scene == sc.name])
     hashes = {xml: content_hash(Path(xml)) if Path(xml).is_file() else None for xml in {j.scene_xml for j in jobs}}
     for job in jobs:
         job.content_hash = hashes[job.scene_xml]
+    if author:
+        _refuse_other_runs(jobs)
     return jobs
+
+
+def _recorded(job: Job) -> dict | None:
+    """The run record in the job's folder (finished or not), or None."""
+    try:
+        rec = json.loads((Path(job.out) / "run.json").read_text())
+    except (OSError, ValueError):  # none, or damaged (the run itself says so)
+        return None
+    return rec if isinstance(rec, dict) else None
+
+
+def _author_suite_scene(sc, xml: Path, jobs: list[Job]) -> None:
+    """Author a mesh scene of the suite, unless its runs in the suite folder
+    were made with another scene (edited options or mesh): then nothing is
+    replaced, and the suite is refused."""
+    import shutil
+    import tempfile
+
+    from .scene import content_hash, move_scene_files, scene_from_mesh
+
+    xml.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=".mitsuba-active-", dir=xml.parent))
+    try:
+        scene_from_mesh(sc.path, staging / xml.name, **sc.scene_options)
+        digest = content_hash(staging / xml.name)
+        stale = [j.out for j in jobs if (rec := _recorded(j)) and rec.get("content_hash") not in (None, digest)]
+        if stale:
+            raise UserError(f"the runs of scene '{sc.name}' in {Path(stale[0]).parent.parent.parent} were made with "
+                            "another version of it (its options or mesh changed); use another --out, or undo "
+                            "the change")
+        move_scene_files(staging, xml.parent, xml.name)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _refuse_other_runs(jobs: list[Job]) -> None:
+    """Refuse, before any run starts, a suite folder whose runs have other settings."""
+    from .run import config_differences
+
+    for job in jobs:
+        rec = _recorded(job)
+        if rec is None:
+            continue
+        changed = config_differences(rec.get("config"), json.loads(json.dumps(job.config)),
+                                     compare_scene=job.content_hash is None)
+        if changed:
+            raise UserError(f"{job.out} holds a run with other settings ({'; '.join(changed[:3])}); "
+                            "use another --out for this variant of the suite")
 
 
 def run_job(job: Job, threads: int | None = None) -> dict:
@@ -329,13 +380,25 @@ def _run_in_workers(jobs: list[Job], workers: int, threads: int, bar) -> None:
             bar.set_postfix_str(status["job"])
             bar.update()
         pool.close()
+        pool.join()
     except BaseException:  # Ctrl-C, or a failed job
         if pool is not None:
-            pool.terminate()
+            _stop_pool(pool, mp)
         raise
-    finally:
-        if pool is not None:
-            pool.join()
+
+
+def _stop_pool(pool, mp, patience: float = 10.0) -> None:
+    """Stop the workers (SIGTERM: they exit through their clean-up) and wait
+    for them; should that not end within ``patience`` seconds (a worker or
+    the pool's own bookkeeping stuck), end them outright, so that an
+    interrupted suite always stops."""
+    stopper = threading.Thread(target=pool.terminate, daemon=True)
+    stopper.start()
+    stopper.join(patience)
+    if stopper.is_alive():
+        for child in mp.active_children():
+            child.kill()
+        stopper.join(patience)
 
 
 def _init_worker(parent: int):

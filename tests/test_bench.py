@@ -390,3 +390,23 @@ def test_ctrl_c_stops_parallel_workers_cleanly(tiny_suite, tmp_path, when):
     assert err.strip().splitlines()[-1] == "mitsuba-active: interrupted", err
     assert "leaked" not in err and "Traceback" not in err, err
     assert not [p for p in out.rglob(".*")] and not [p for p in cache.rglob(".*")]
+
+
+def test_a_changed_suite_is_refused_before_anything_is_replaced(tiny_suite, tmp_path):
+    """Runs made with other scene options or settings are not mixed in: the
+    suite is refused up front, and the authored scene stays as its runs saw it."""
+    out = tmp_path / "out"
+    run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False)
+    xml = next((out / "scenes").rglob("*.xml"))
+    before = xml.read_bytes()
+    text = tiny_suite.read_text()
+    tiny_suite.write_text(text.replace('mesh = "ball.ply"', 'mesh = "ball.ply"\nfloor = true'))
+    with pytest.raises(UserError, match="another version of it"):
+        run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False)
+    assert xml.read_bytes() == before and not [p for p in out.rglob(".*")]
+    tiny_suite.write_text(text.replace("eval_steps = 20", "eval_steps = 25"))
+    with pytest.raises(UserError, match=r"other settings \(eval_steps: 20 -> 25\)"):
+        run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False)
+    # Undone, the suite is the same again: its finished run counts.
+    tiny_suite.write_text(text)
+    assert len(run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False)["cells"]) == 1

@@ -106,7 +106,13 @@ def load_suite(path) -> Suite:
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"malformed suite file {path}: {exc}") from None
     run_fields = _setting_names()
+    unknown = set(data) - {"name", "planners", "defaults", "scenes"}
+    if unknown:
+        raise UserError(f"{path}: unknown keys {', '.join(sorted(unknown))}; a suite has name, planners, "
+                        "[defaults] and [[scenes]]")
     planners = data.get("planners", ["random", "even", "rfe"])
+    if not isinstance(planners, list) or not all(isinstance(p, str) for p in planners):
+        raise UserError(f"{path}: planners must be a list of names, e.g. planners = [\"even\", \"rfe\"]")
     for p in planners:
         make_planner(p)
     defaults = data.get("defaults", {})

@@ -20,7 +20,7 @@ import csv
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -233,10 +233,12 @@ def field_config(cfg: RunConfig, planner: bool = True):
     base = {"distance_weight": cfg.distance_weight, **SPARSE_VIEW_FIELD}
     if planner:
         base["init_scale"] = PLANNER_INIT_SCALE
-    try:
-        return FieldConfig(**{**base, **cfg.field})
-    except TypeError as exc:
-        raise UserError(f"unknown field option: {exc}") from None
+    known = {f.name for f in fields(FieldConfig)}
+    unknown = sorted(set(cfg.field) - known)
+    if unknown:
+        raise UserError(f"unknown field option {', '.join(unknown)}; see FieldConfig (docs/field.md) for "
+                        f"the options: {', '.join(sorted(known))}")
+    return FieldConfig(**{**base, **cfg.field})
 
 
 def make_ensemble(source, cfg: RunConfig, n_members: int, seed: int, planner: bool = True):

@@ -186,6 +186,8 @@ def test_suite_runs_in_worker_processes(tiny_suite, tmp_path):
     ("[[scenes]]\nmesh='x.obj'\nplanner='rfe'\n", "unknown settings: planner"),
     ("[defaults]\nfield = 3\n[[scenes]]\nmesh='x.obj'\n", "'field' must be a table"),
     ("name = [", "malformed"),
+    ("planer = ['rfe']\n[default]\nbudget = 4\n[[scenes]]\nmesh='x.obj'\n", "unknown keys default, planer"),
+    ("planners = 'rfe'\n[[scenes]]\nmesh='x.obj'\n", "planners must be a list"),
 ])
 def test_bad_suites(tmp_path, text, message):
     bad = tmp_path / "bad.toml"

@@ -84,7 +84,8 @@ def load_ensemble(cls, path):
     """Read an ensemble written by :func:`save_ensemble`."""
     path = Path(path)
     if path.is_file() and not zipfile.is_zipfile(path):  # np.load would guess at a pickle
-        raise UserError(f"cannot read ensemble file {path}: not a whole .npz archive (damaged, or another kind of file)")
+        raise UserError(f"cannot read ensemble file {path}: not a whole .npz archive "
+                        "(damaged, or another kind of file)")
     try:
         with np.load(path, allow_pickle=False) as z:
             ens = _ensemble_from(cls, z, path)

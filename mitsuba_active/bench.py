@@ -298,7 +298,7 @@ def _author_suite_scene(sc, xml: Path, jobs: list[Job]) -> None:
 
 def _refuse_other_runs(jobs: list[Job]) -> None:
     """Refuse, before any run starts, a suite folder whose runs have other settings."""
-    from .run import config_differences
+    from .run import config_differences, other_settings
 
     for job in jobs:
         rec = _recorded(job)
@@ -307,8 +307,7 @@ def _refuse_other_runs(jobs: list[Job]) -> None:
         changed = config_differences(rec.get("config"), json.loads(json.dumps(job.config)),
                                      compare_scene=job.content_hash is None)
         if changed:
-            raise UserError(f"{job.out} holds a run with other settings ({'; '.join(changed[:3])}); "
-                            "use another --out for this variant of the suite")
+            raise UserError(other_settings(job.out, changed, "use another --out for this variant of the suite"))
 
 
 def run_job(job: Job, threads: int | None = None) -> dict:
@@ -389,15 +388,17 @@ def _run_in_workers(jobs: list[Job], workers: int, threads: int, bar) -> None:
         pool.join()
     except BaseException:  # Ctrl-C, or a failed job
         if pool is not None:
-            _stop_pool(pool, mp)
+            _stop_pool(pool)
         raise
 
 
-def _stop_pool(pool, mp, patience: float = 10.0) -> None:
+def _stop_pool(pool, patience: float = 10.0) -> None:
     """Stop the workers (SIGTERM: they exit through their clean-up) and wait
     for them; should that not end within ``patience`` seconds (a worker or
     the pool's own bookkeeping stuck), end them outright, so that an
     interrupted suite always stops."""
+    import multiprocessing as mp
+
     stopper = threading.Thread(target=pool.terminate, daemon=True)
     stopper.start()
     stopper.join(patience)
@@ -447,14 +448,8 @@ def finished_record(job: Job) -> dict | None:
     """
     from .run import same_config
 
-    path = Path(job.out) / "run.json"
-    if not path.is_file():
-        return None
-    try:
-        rec = json.loads(path.read_text())
-    except (OSError, ValueError):  # ValueError: not JSON, or not text
-        return None
-    if not isinstance(rec, dict) or not rec.get("finished"):
+    rec = _recorded(job)
+    if rec is None or not rec.get("finished"):
         return None
     if job.content_hash is not None and rec.get("content_hash") != job.content_hash:
         return None  # the scene changed since

@@ -220,6 +220,13 @@ def config_differences(recorded, current: dict, compare_scene: bool = True) -> l
     return [f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
 
 
+def other_settings(folder, changed: list[str], advice: str) -> str:
+    """The message refusing ``folder``, whose run has other settings (``changed``,
+    from :func:`config_differences`; the first three are named)."""
+    more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
+    return f"{folder} holds a run with other settings ({'; '.join(changed[:3])}{more}); {advice}"
+
+
 def same_config(recorded, current: dict, compare_scene: bool = True) -> bool:
     """Whether a run record's config has the settings of ``current`` (see :func:`config_differences`)."""
     return not config_differences(recorded, current, compare_scene)
@@ -347,9 +354,7 @@ class Run:
             by_content = rec.get("content_hash") is not None and self._content_hash() is not None
             changed = config_differences(rec.get("config"), self._config_dict(), compare_scene=not by_content)
             if changed:
-                more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
-                raise UserError(f"{self.out} holds a run with other settings ({'; '.join(changed[:3])}{more}); "
-                                "choose another --out folder")
+                raise UserError(other_settings(self.out, changed, "choose another --out folder"))
             if ((by_content and rec["content_hash"] != self._content_hash())
                     or rec.get("candidates") != [c.to_dict() for c in self.source.candidates]
                     or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):
@@ -368,6 +373,14 @@ class Run:
 
     def _has_distance(self) -> bool:
         return bool(getattr(self.source, "has_distance", True))
+
+    def _exr_channels(self, view: View) -> dict:
+        """A view's EXR channels: linear RGB, and its distances in Z when the
+        source has any (no Z of zeros that would read as "nothing hit")."""
+        channels = {"RGB": srgb_to_linear(view.rgb)}
+        if self._has_distance():
+            channels["Z"] = view.distance
+        return channels
 
     def _content_hash(self):
         """The scene's (or the dataset's) content digest: a run folder is
@@ -398,10 +411,7 @@ class Run:
     def _save_view(self, n: int, view: View) -> None:
         stem = self.out / "views" / f"view_{n:03d}"
         write_png(stem.with_suffix(".png"), view.rgb)
-        channels = {"RGB": srgb_to_linear(view.rgb)}
-        if self._has_distance():  # no Z of zeros that would read as "nothing hit"
-            channels["Z"] = view.distance
-        write_exr(stem.with_suffix(".exr"), channels)
+        write_exr(stem.with_suffix(".exr"), self._exr_channels(view))
 
     # -- the loop -----------------------------------------------------------
     def execute(self) -> dict:
@@ -521,10 +531,7 @@ class Run:
             write_png(f"{stem}_pred.png", pred["rgb"])
             write_png(f"{stem}_gt.png", gt.rgb)
             write_exr(f"{stem}_pred.exr", {"RGB": srgb_to_linear(pred["rgb"]), "Z": pred["distance"]})
-            gt_channels = {"RGB": srgb_to_linear(gt.rgb)}
-            if self._has_distance():
-                gt_channels["Z"] = gt.distance
-            write_exr(f"{stem}_gt.exr", gt_channels)
+            write_exr(f"{stem}_gt.exr", self._exr_channels(gt))
             if self.ensemble is not None and self.ensemble.n_members > 1:
                 ens_pred = predict_view(self.ensemble, self.source.heldout[i])
                 var = ens_pred["rgb_var"].mean(axis=2)

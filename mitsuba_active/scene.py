@@ -242,7 +242,7 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
     mesh_file = f"{mesh_path.stem}.ply"
     if (out_dir / mesh_file).resolve() == mesh_path.resolve():
         mesh_file = f"{mesh_path.stem}_scene.ply"  # never overwrite the user's own mesh
-    tex_file, staging, done = None, None, False
+    tex_file, staging = None, None
     try:
         try:
             staging = Path(tempfile.mkdtemp(prefix=".mitsuba-active-", dir=out_dir))
@@ -263,12 +263,12 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
         except UserError as exc:  # name the files as the user will find them, not the staging folder
             raise UserError(str(exc).replace(str(staging), str(out_dir))) from None
         move_scene_files(staging, out_dir, out_xml.name)
-        done = True
+    except BaseException:
+        remove_new(out_dir, *added)
+        raise
     finally:
         if staging is not None:
             shutil.rmtree(staging, ignore_errors=True)
-        if not done:
-            remove_new(out_dir, *added)
     return out_xml
 
 

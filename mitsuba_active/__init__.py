@@ -3,22 +3,33 @@
 Importing the package selects a Mitsuba variant (``llvm_ad_rgb`` unless the
 caller already chose an RGB autodiff variant or set
 ``$MITSUBA_ACTIVE_VARIANT``) after checking that Dr.Jit can find LLVM >= 19.
+Where it cannot run (no usable LLVM, no GPU for ``cuda_ad_rgb``) the import
+raises :class:`~mitsuba_active.errors.SetupError`, an ``ImportError`` whose
+message names the fix; uncaught, it ends the program with that one line.
 """
 
-from .errors import UserError
+import sys
+
+from .errors import SetupError, UserError
 from .variant import set_variant
 
 __version__ = "0.1.0"
 
+
+def _one_line_setup_error(exc_type, exc, tb, _previous=sys.excepthook):
+    """Print an uncaught SetupError as one line with its fix, not a traceback
+    (any other exception goes to the previous hook)."""
+    if issubclass(exc_type, SetupError):
+        print(f"mitsuba-active: error: {exc}", file=sys.stderr)
+    else:
+        _previous(exc_type, exc, tb)
+
+
 try:
     set_variant()
 except UserError as exc:
-    # One line with the fix, not a traceback from deep inside Dr.Jit; exit
-    # code 2, as for every other bad input.
-    import sys
-
-    print(f"mitsuba-active: error: {exc}", file=sys.stderr)
-    raise SystemExit(2) from None
+    sys.excepthook = _one_line_setup_error
+    raise SetupError(str(exc)) from None
 
 try:  # Mitsuba plugins (the "radiance_field" integrator): cheap, and never fatal
     from .plugins import register as _register_plugins
@@ -29,4 +40,4 @@ except Exception as exc:  # pragma: no cover
 
     warnings.warn(f"mitsuba-active: Mitsuba plugins not registered ({exc})")
 
-__all__ = ["UserError", "set_variant", "__version__"]
+__all__ = ["SetupError", "UserError", "set_variant", "__version__"]

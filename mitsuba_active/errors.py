@@ -1,4 +1,4 @@
-"""The one exception type that the command line turns into a one-line message."""
+"""The exceptions that the command line and the package turn into one-line messages."""
 
 
 class UserError(Exception):
@@ -6,4 +6,13 @@ class UserError(Exception):
 
     The CLI prints ``error: <message>`` on one line and exits with code 2;
     library callers can catch it like any other exception.
+    """
+
+
+class SetupError(UserError, ImportError):
+    """This machine cannot run mitsuba-active as set up (no usable LLVM, no GPU
+    for ``cuda_ad_rgb``): raised by ``import mitsuba_active``.
+
+    An ``ImportError``, so that a pipeline with optional dependencies can catch
+    it; left uncaught, it ends the program with its one line, not a traceback.
     """

@@ -13,6 +13,7 @@ import glob
 import os
 import re
 import sys
+import warnings
 
 from .errors import UserError
 
@@ -91,7 +92,8 @@ def set_variant(name: str | None = None) -> str:
 
     ``name`` defaults to ``$MITSUBA_ACTIVE_VARIANT`` or, when a Mitsuba
     variant with autodiff and RGB is already set by the caller's pipeline,
-    that one (as it is: no LLVM check); otherwise ``llvm_ad_rgb``.
+    that one (as it is: no LLVM check); otherwise ``llvm_ad_rgb``. Another
+    variant set by the caller (scalar, spectral) is switched, with a warning.
     ``cuda_ad_rgb`` needs a GPU, and no LLVM.
     """
     name = name or os.environ.get("MITSUBA_ACTIVE_VARIANT")
@@ -118,4 +120,10 @@ def set_variant(name: str | None = None) -> str:
             mi.set_variant(name)
         except Exception as exc:  # e.g. no CUDA driver
             raise UserError(f"cannot use Mitsuba variant '{name}': {exc}") from None
+        if current is not None:
+            # The caller's pipeline chose another variant (scalar, spectral...):
+            # its Mitsuba objects and types stay in that one.
+            warnings.warn(f"mitsuba-active switched Mitsuba from variant '{current}' to '{name}' "
+                          f"(it needs one of {', '.join(VARIANTS)}); objects made under '{current}' "
+                          "do not mix with it", stacklevel=2)
     return name

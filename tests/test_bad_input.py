@@ -105,9 +105,31 @@ LLVM_VARIANT = {"MITSUBA_ACTIVE_VARIANT": "llvm_ad_rgb"}
 
 def test_missing_llvm_is_one_line_with_the_fix(tmp_path):
     env = dict(os.environ, DRJIT_LIBLLVM_PATH=str(tmp_path / "libLLVM-nothing.so"), **LLVM_VARIANT)
-    proc = subprocess.run([sys.executable, "-c", "import mitsuba_active"], capture_output=True, text=True, env=env)
-    assert proc.returncode == 2
-    assert proc.stderr.strip().count("\n") == 0 and "apt-get install libllvm19" in proc.stderr
+    for command in (["-c", "import mitsuba_active"], ["-m", "mitsuba_active", "plan", "--help"]):
+        proc = subprocess.run([sys.executable, *command], capture_output=True, text=True, env=env)
+        assert proc.returncode != 0 and proc.stdout == ""
+        assert proc.stderr.strip().count("\n") == 0 and "apt-get install libllvm19" in proc.stderr
+
+
+def test_missing_llvm_is_an_import_error_a_pipeline_can_catch(tmp_path):
+    env = dict(os.environ, DRJIT_LIBLLVM_PATH=str(tmp_path / "libLLVM-nothing.so"), **LLVM_VARIANT)
+    code = ("try:\n    import mitsuba_active\nexcept ImportError as exc:\n    print('without:', exc)\n"
+            "raise ValueError('the pipeline goes on')")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    assert proc.stdout.startswith("without: ") and "libllvm19" in proc.stdout
+    # Other exceptions keep their tracebacks.
+    assert "Traceback" in proc.stderr and "ValueError: the pipeline goes on" in proc.stderr
+
+
+def test_a_pipeline_variant_that_cannot_run_fields_is_switched_with_a_warning():
+    code = ("import warnings, mitsuba as mi\nmi.set_variant('scalar_rgb')\n"
+            "with warnings.catch_warnings(record=True) as caught:\n    warnings.simplefilter('always')\n"
+            "    import mitsuba_active\nprint(mi.variant(), '|', '; '.join(str(w.message) for w in caught))")
+    env = dict(os.environ, **LLVM_VARIANT)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    variant, _, warned = proc.stdout.strip().partition(" | ")
+    assert proc.returncode == 0 and variant == "llvm_ad_rgb"
+    assert "switched Mitsuba from variant 'scalar_rgb' to 'llvm_ad_rgb'" in warned
 
 
 def test_gpu_variant_without_a_gpu_says_so():
@@ -118,7 +140,7 @@ def test_gpu_variant_without_a_gpu_says_so():
     env = dict(os.environ, MITSUBA_ACTIVE_VARIANT="cuda_ad_rgb")
     proc = subprocess.run([sys.executable, "-m", "mitsuba_active", "--version"], capture_output=True, text=True,
                           env=env)
-    assert proc.returncode == 2 and proc.stderr.strip().count("\n") == 0
+    assert proc.returncode != 0 and proc.stderr.strip().count("\n") == 0
     assert "needs an NVIDIA GPU" in proc.stderr and "unset MITSUBA_ACTIVE_VARIANT" in proc.stderr
 
 

@@ -124,7 +124,7 @@ def _rig_options(fn):
 @click.argument("scene_xml", required=False, type=click.Path(dir_okay=False))
 @click.option("-o", "--output", "out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 @_rig_options
-@click.option("--views", type=int, default=None, help="Render only the first N candidates [all].")
+@click.option("--views", type=int, default=None, help="Render only the first N views of the split [all].")
 @click.option("--split", type=click.Choice(["candidates", "heldout"]), default="candidates", show_default=True)
 @_one_line_errors
 def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, views, split):

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from fractions import Fraction
 
 import numpy as np
 
@@ -268,15 +269,23 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     ``rig``: ``sphere``, ``hemisphere`` and ``rings`` surround the scene's
     bounds at a distance where the bounding sphere fills the view;
     ``interior`` places cameras inside a room; ``xml`` takes the XML's own
-    sensors as candidates (held-out views then come from a generated rig);
+    sensors as candidates, with their poses, fields of view and clip
+    distances (held-out views then come from a generated rig);
     ``auto`` picks ``interior`` for rooms, else ``sphere``. The held-out rig
     is the same kind with a shifted spiral, and never coincides with a candidate.
 
+    Images are ``width`` pixels wide and ``height`` high; ``height`` defaults
+    to ``width``, or under ``xml`` to the aspect ratio of the sensors' films.
+
     Returns ``(candidates, heldout)``, two lists of :class:`Camera`.
     """
-    height = height or width
     if rig not in RIG_KINDS:
         raise UserError(f"unknown rig '{rig}'; choose one of {', '.join(RIG_KINDS)}")
+    if rig == "xml":
+        if not scene.sensors:
+            raise UserError(f"{scene.path} has no perspective sensor to use as candidates")
+        height = height or _film_height(scene.sensors, width)
+    height = height or width
     generated = rig
     if rig in ("auto", "xml"):  # the XML's own sensors get held-out views of the right kind
         generated = "interior" if scene.interior else "sphere"
@@ -297,20 +306,32 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
         fov = 40.0 if fov is None else fov
         if not 0.0 < fov < 180.0:
             raise UserError(f"field of view must be in (0, 180) degrees, got {fov}")
-        radius = 1.05 * scene.radius / math.sin(math.radians(fov) / 2)
+        half_fov = math.radians(fov) / 2
+        if height < width:  # wide images: the vertical field of view is the narrower one
+            half_fov = math.atan(math.tan(half_fov) * height / width)
+        radius = 1.05 * scene.radius / math.sin(half_fov)
         near, far = clip_range(scene.radius, radius + scene.radius)
         fn = {"sphere": fibonacci_sphere, "hemisphere": hemisphere, "rings": rings}[generated]
         make = lambda n, off: fn(n, scene.center, radius, fov, width, height, off, up=scene.up,  # noqa: E731
                                  near=near, far=far)
     if rig == "xml":
-        if not scene.sensors:
-            raise UserError(f"{scene.path} has no perspective sensor to use as candidates")
         candidates = [c.with_resolution(width, height) for c in scene.sensors]
     else:
         candidates = make(n_candidates, 0.0)
     heldout = make(n_heldout, 0.5)
     check_disjoint(candidates, heldout)
     return candidates, heldout
+
+
+def _film_height(sensors, width: int) -> int:
+    """Image height for ``width`` at the one aspect ratio of the sensors' films
+    (all candidates share one image size, so the films must agree)."""
+    aspects = {Fraction(c.height, c.width) for c in sensors}
+    if len(aspects) > 1:
+        sizes = ", ".join(sorted({f"{c.width}x{c.height}" for c in sensors}))
+        raise UserError(f"the scene's sensors have films of different aspect ratios ({sizes}); "
+                        "rig 'xml' needs one, as all candidate views share one image size")
+    return max(1, round(width * aspects.pop()))
 
 
 def _check_count(n):

@@ -64,10 +64,15 @@ class SceneSource:
     @classmethod
     def from_xml(cls, xml_path, rig="auto", n_candidates=100, n_heldout=20, resolution=64, fov=None,
                  spp=64, cache_dir=None):
+        """Load a scene XML and make its rigs (:func:`~mitsuba_active.cameras.scene_rigs`).
+
+        ``resolution`` is the image width in pixels; the height equals it, or
+        under ``rig="xml"`` follows the aspect ratio of the scene's own films.
+        """
         from .scene import load_scene
 
         scene = load_scene(xml_path)
-        cands, held = scene_rigs(scene, rig, n_candidates, n_heldout, resolution, resolution, fov)
+        cands, held = scene_rigs(scene, rig, n_candidates, n_heldout, resolution, None, fov)
         return cls(scene, cands, held, spp=spp, cache_dir=cache_dir)
 
     def candidate_view(self, index: int) -> View:
@@ -87,7 +92,9 @@ class ActiveViewEnv(gym.Env):
     * observation: ``{"rgb": (H,W,3) float32 in [0,1], "distance": (H,W)
       float32 (0 where nothing is hit), "mask": (H,W) int8 hit mask,
       "pose": (4,4) float32 camera-to-world (Mitsuba convention)}``;
-    * ``info``: ``"intrinsics"`` (3,3), ``"action_mask"`` (n_candidates,)
+    * ``info``: ``"intrinsics"`` (3,3) pixel intrinsics of the observation's
+      camera (candidates may differ in field of view; candidate 0's before
+      any capture), ``"action_mask"`` (n_candidates,)
       int8 with 1 for views not yet captured, ``"captured"`` (list of
       indices), ``"views_left"``;
     * terminated once ``budget`` views have been captured (initial views count).
@@ -133,10 +140,10 @@ class ActiveViewEnv(gym.Env):
         for i in self.np_random.choice(self.action_space.n, size=k, replace=False):
             self._capture(int(i))
         if self.views:
-            return self._obs(self.views[-1]), self._info()
+            return self._obs(self.views[-1]), self._info(self.views[-1].camera)
         blank = {"rgb": np.zeros((*self.shape, 3), np.float32), "distance": np.zeros(self.shape, np.float32),
                  "mask": np.zeros(self.shape, np.int8), "pose": np.eye(4, dtype=np.float32)}
-        return blank, self._info()
+        return blank, self._info(self.source.candidates[0])
 
     def step(self, action):
         """Capture candidate ``action``: returns ``(obs, reward, terminated, truncated, info)``.
@@ -151,7 +158,7 @@ class ActiveViewEnv(gym.Env):
         if self.terminated:
             raise UserError("the view budget is spent; call reset()")
         view = self._capture(int(action))
-        return self._obs(view), 0.0, self.terminated, False, self._info()
+        return self._obs(view), 0.0, self.terminated, False, self._info(view.camera)
 
     # -- beyond gymnasium ----------------------------------------------------
     @property
@@ -159,7 +166,7 @@ class ActiveViewEnv(gym.Env):
         return len(self.captured) >= self.budget
 
     def capture_pose(self, pose: np.ndarray) -> dict:
-        """Capture an arbitrary camera-to-world pose (Mitsuba convention) with the candidates' intrinsics.
+        """Capture an arbitrary camera-to-world pose (Mitsuba convention) with candidate 0's intrinsics.
 
         The view is returned as an observation but not added to the captured set.
         A pose that is a candidate's or held-out camera's up to single
@@ -191,8 +198,8 @@ class ActiveViewEnv(gym.Env):
         return {"rgb": view.rgb.astype(np.float32), "distance": view.distance.astype(np.float32),
                 "mask": view.mask.astype(np.int8), "pose": view.camera.to_world.astype(np.float32)}
 
-    def _info(self) -> dict:
+    def _info(self, camera: Camera) -> dict:
         mask = np.ones(self.action_space.n, dtype=np.int8)
         mask[self.captured] = 0
-        return {"intrinsics": self.source.candidates[0].intrinsics(), "action_mask": mask,
+        return {"intrinsics": camera.intrinsics(), "action_mask": mask,
                 "captured": list(self.captured), "views_left": self.budget - len(self.captured)}

@@ -421,6 +421,9 @@ def load_scene(xml_path, **params) -> Scene:
     from .cameras import Camera, snapped_up
 
     xml_path = Path(xml_path)
+    if xml_path.is_dir():
+        raise UserError(f"{xml_path} is a folder, not a scene XML file (a transforms.json dataset is read "
+                        "with mitsuba_active.datasets.DatasetSource)")
     if not xml_path.is_file():
         raise UserError(f"scene file not found: {xml_path}")
     if xml_path.suffix.lower() in MESH_SUFFIXES:
@@ -450,7 +453,7 @@ def load_scene(xml_path, **params) -> Scene:
         size = s.film().crop_size()
         fov = float(sensor_params["x_fov"][0])
         m = np.array(s.world_transform().matrix, dtype=np.float64).reshape(4, 4)
-        sensors.append(Camera(m, fov, int(size[0]), int(size[1])))
+        sensors.append(Camera(m, fov, int(size[0]), int(size[1]), float(s.near_clip()), float(s.far_clip())))
     up = snapped_up(sensors[:1])  # the first sensor's, as the scene's author set it up
     return Scene(xml_path, mi_scene, lo, hi, digest, _is_interior(mi_scene, lo, hi), sensors, up)
 

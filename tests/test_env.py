@@ -80,3 +80,61 @@ def test_capture_pose_snaps_only_to_the_same_camera(tmp_path):
     assert np.allclose(env.capture_pose(pose)["pose"], pose, atol=1e-3)
     assert np.allclose(env.capture_pose(src.candidates[0].to_world.astype(np.float32))["pose"],
                        src.candidates[0].to_world, atol=1e-3)
+
+
+def _two_sensor_xml(tmp_path, second_film="48x24"):
+    """A sphere seen by two sensors of the author's: fields of view 30 (vertical) and 50 degrees."""
+    w, h = second_film.split("x")
+    xml = tmp_path / "two_sensors.xml"
+    xml.write_text(f"""<scene version="3.0.0">
+  <shape type="sphere"><float name="radius" value="0.5"/></shape>
+  <emitter type="constant"/>
+  <sensor type="perspective">
+    <float name="fov" value="30"/><string name="fov_axis" value="y"/>
+    <float name="near_clip" value="0.5"/><float name="far_clip" value="100"/>
+    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="48"/><integer name="height" value="24"/></film>
+  </sensor>
+  <sensor type="perspective">
+    <float name="fov" value="50"/>
+    <transform name="to_world"><lookat origin="4, 0, 0" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="{w}"/><integer name="height" value="{h}"/></film>
+  </sensor>
+</scene>""")
+    return xml
+
+
+def test_xml_rig_keeps_the_authors_sensors_and_info_describes_each_view(tmp_path):
+    src = tiny_source(_two_sensor_xml(tmp_path), n_heldout=2, resolution=16, rig="xml")
+    first, second = src.candidates
+    # The films' 2:1 aspect, the first sensor's vertical 30 degrees and its clip distances.
+    assert {(c.width, c.height) for c in src.candidates + src.heldout} == {(16, 8)}
+    vertical_fov = 2 * np.degrees(np.arctan(np.tan(np.radians(first.fov) / 2) / 2))
+    assert vertical_fov == pytest.approx(30.0, abs=1e-3) and second.fov == pytest.approx(50.0, abs=1e-3)
+    assert (first.near, first.far) == pytest.approx((0.5, 100.0))
+    env = ActiveViewEnv(src, budget=2)
+    obs, info = env.reset(seed=0, options={"initial_views": 0})
+    assert obs["rgb"].shape == (8, 16, 3)
+    for index, camera in ((1, second), (0, first)):
+        info = env.step(index)[4]
+        assert np.allclose(info["intrinsics"], camera.intrinsics())
+    assert not np.allclose(first.intrinsics(), second.intrinsics())
+
+
+def test_xml_rig_refuses_sensors_of_different_shapes(tmp_path):
+    with pytest.raises(UserError, match="different aspect ratios.*32x32, 48x24"):
+        tiny_source(_two_sensor_xml(tmp_path, second_film="32x32"), n_heldout=2, resolution=16, rig="xml")
+
+
+def test_wide_images_keep_the_whole_object_in_view(sphere_xml):
+    from mitsuba_active.cameras import scene_rigs
+    from mitsuba_active.scene import load_scene
+
+    scene = load_scene(sphere_xml)
+    for width, height in ((48, 16), (16, 48), (16, 16)):
+        candidates, _ = scene_rigs(scene, "sphere", 6, 2, width, height)
+        for cam in candidates:
+            half_x = np.radians(cam.fov) / 2
+            half_y = np.arctan(np.tan(half_x) * height / width)
+            seen = np.arcsin(scene.radius / np.linalg.norm(cam.position - scene.center))
+            assert seen < min(half_x, half_y)

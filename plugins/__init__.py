@@ -26,7 +26,7 @@ def register() -> bool:
 
         from . import radiance_field
 
-        if radiance_field.supported(mi.variant()):
+        if mi.variant() is not None:
             mi.register_integrator(radiance_field.NAME, radiance_field.create)
         if not _callback_added:
             # Mitsuba's registry is per variant: register again after mi.set_variant().
@@ -44,7 +44,9 @@ def _on_variant_change(old, new):
 
         from . import radiance_field
 
-        if radiance_field.supported(new):
+        if new is not None:
+            # Also where the integrator cannot run: loading it there then says
+            # which variants it needs, instead of "plugin not found".
             mi.register_integrator(radiance_field.NAME, radiance_field.create)
     except Exception as exc:
         warnings.warn(f"mitsuba-active: could not register the Mitsuba plugins for {new} ({exc})")

@@ -10,7 +10,8 @@
     img = mi.render(scene)  # (H, W, 3 + 6): RGB, then the AOVs below
 
 Parameters:
-    filename: an ensemble written by ``Ensemble.save`` (``.npz``).
+    filename: an ensemble written by ``Ensemble.save`` (``.npz``); a relative
+        path is looked up beside the scene XML first, as Mitsuba's own plugins do.
     linear: bool, default True. The field stores sRGB colours in [0, 1];
         with ``linear`` the mean colour is converted to linear RGB, so that
         Mitsuba's film, EXR and PNG writers treat it as radiance. False
@@ -83,7 +84,8 @@ def _make_class(base):
 
             if "filename" not in props:
                 raise ValueError(f"{NAME}: the 'filename' parameter (a saved ensemble) is required")
-            self.filename = str(props["filename"])
+            # Relative to the scene XML's folder, as Mitsuba's own plugins resolve their files.
+            self.filename = str(mi.file_resolver().resolve(str(props["filename"])))
             self.linear = bool(props.get("linear", True))
             self.ensemble = Ensemble.load(self.filename)
             self._sensor = None

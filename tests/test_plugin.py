@@ -88,3 +88,19 @@ def test_missing_filename_is_refused():
     assert register()
     with pytest.raises(Exception, match="filename"):
         mi.load_dict({"type": NAME})
+
+
+def test_a_relative_filename_is_found_beside_the_scene_xml(field_path, tmp_path, monkeypatch):
+    import shutil
+
+    folder = tmp_path / "scene"
+    folder.mkdir()
+    shutil.copy(field_path, folder / "my_field.npz")
+    (folder / "scene.xml").write_text(f"""<scene version="3.0.0">
+  <integrator type="{NAME}"><string name="filename" value="my_field.npz"/></integrator>
+  <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="4"/>
+    <integer name="height" value="3"/></film></sensor>
+</scene>""")
+    monkeypatch.chdir(tmp_path)  # not the scene's folder
+    img = np.array(mi.render(mi.load_file("scene/scene.xml"), spp=1))
+    assert img.shape == (3, 4, 9) and np.all(np.isfinite(img))

@@ -21,6 +21,7 @@ import numpy as np
 from .cameras import Camera, sensor_rays_dr
 from .errors import UserError
 from .imageio_utils import linear_to_srgb, read_exr, write_exr
+from .variant import require_variant
 
 CACHE_VERSION = "1"
 
@@ -86,6 +87,10 @@ class GroundTruth:
         scene: a :class:`mitsuba_active.scene.Scene`.
         spp: samples per pixel of the RGB render.
         cache_dir: EXR cache folder (``None``: :func:`default_cache_dir`; ``False``: no cache).
+
+    Cache keys hash the scene's files (``scene.content_hash``), not the
+    Mitsuba scene in memory: a scene edited through ``mi.traverse`` needs
+    ``cache_dir=False``.
     """
 
     def __init__(self, scene, spp: int = 64, cache_dir=None):
@@ -114,6 +119,7 @@ class GroundTruth:
                     return self._view(ch["RGB"], ch["Z"], camera)
                 except Exception:
                     pass  # a damaged entry is simply rendered again
+        require_variant("rendering ground truth")
         # Seed from the pose so that views are independent but reproducible.
         seed = int(self.key(camera)[:7], 16)
         linear = render_rgb(self.scene.mi_scene, camera, self.spp, seed)

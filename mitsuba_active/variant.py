@@ -127,3 +127,15 @@ def set_variant(name: str | None = None) -> str:
                           f"(it needs one of {', '.join(VARIANTS)}); objects made under '{current}' "
                           "do not mix with it", stacklevel=2)
     return name
+
+
+def require_variant(what: str) -> None:
+    """Raise UserError unless Mitsuba runs one of :data:`VARIANTS` (the caller
+    may have switched it after importing the package): in another, renders
+    would be of another kind (spectral) under the same cache keys, or fail
+    deep inside Mitsuba (scalar)."""
+    import mitsuba as mi
+
+    if mi.variant() not in VARIANTS:
+        raise UserError(f"{what} needs Mitsuba variant {' or '.join(VARIANTS)}, but '{mi.variant()}' is set; "
+                        "call mitsuba_active.set_variant() first")

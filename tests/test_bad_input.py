@@ -132,6 +132,26 @@ def test_a_pipeline_variant_that_cannot_run_fields_is_switched_with_a_warning():
     assert "switched Mitsuba from variant 'scalar_rgb' to 'llvm_ad_rgb'" in warned
 
 
+def test_a_variant_switched_after_import_is_refused_before_rendering(tmp_path):
+    # A spectral render would land in the ground-truth cache under an RGB render's key.
+    xml = tmp_path / "ball.xml"
+    xml.write_text('<scene version="3.0.0"><shape type="sphere"/><emitter type="constant"/></scene>')
+    code = (f"import mitsuba_active, mitsuba as mi\nfrom mitsuba_active.env import SceneSource\n"
+            f"from mitsuba_active.field import Ensemble\n"
+            f"src = SceneSource.from_xml({str(xml)!r}, n_candidates=2, n_heldout=1, resolution=8, spp=1, "
+            f"cache_dir={str(tmp_path / 'cache')!r})\n"
+            "mi.set_variant('llvm_ad_spectral')\n"
+            "for make in (lambda: src.candidate_view(0), lambda: Ensemble([-1] * 3, [1] * 3)):\n"
+            "    try:\n        make()\n    except mitsuba_active.UserError as exc:\n        print(exc)\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=dict(os.environ, **LLVM_VARIANT))
+    lines = proc.stdout.splitlines()
+    assert proc.returncode == 0 and len(lines) == 2, proc.stderr
+    assert lines[0].startswith("rendering ground truth needs Mitsuba variant llvm_ad_rgb or cuda_ad_rgb")
+    assert lines[1].startswith("Ensemble needs") and "'llvm_ad_spectral' is set" in lines[1]
+    assert not (tmp_path / "cache").exists()
+
+
 def test_gpu_variant_without_a_gpu_says_so():
     import drjit as dr
 

@@ -309,3 +309,17 @@ def test_rays_that_would_spoil_training_are_refused(change, message):
     ens = Ensemble(*BOX, n_members=1, config=tiny_config(), seed=0)
     with pytest.raises(UserError, match=message):
         ens.set_rays(*change(np.asarray(o), np.asarray(d), np.asarray(c)), dist, hit)
+
+
+def test_rendering_refuses_rays_it_would_misread():
+    o, d, *_ = views([[0.0, 0.3, 2.2]], width=4, height=4)
+    o, d = np.asarray(o), np.asarray(d)
+    ens = Ensemble(*BOX, n_members=2, config=tiny_config(), seed=0)
+    for call in (ens.predict, ens.render, lambda o, d: ens.fisher_diag(o, d)):
+        with pytest.raises(UserError, match="unit vectors"):
+            call(o, 2 * d)  # would halve every distance
+        with pytest.raises(UserError, match=r"shape \(N, 3\)"):
+            call(o[:, :2], d[:, :2])  # 2-vectors
+        with pytest.raises(UserError, match="16 origins but 15 directions"):
+            call(o, d[1:])
+    assert ens.predict(o.reshape(4, 4, 3), d.reshape(4, 4, 3))["rgb_mean"].shape == (16, 3)

@@ -22,6 +22,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..errors import UserError
+from ..variant import require_variant
 from .config import FieldConfig
 from .grid import GridLayout, init_grid
 from .occupancy import DECAY, cell_opacity
@@ -36,6 +37,32 @@ MIN_BOX_SIDE = 0.05
 def _member_seeds(seed: int, n: int):
     """Independent per-member seed sequences; member k does not depend on n."""
     return [np.random.SeedSequence(int(seed), spawn_key=(k,)) for k in range(n)]
+
+
+def _triples(values, what: str, name: str) -> np.ndarray:
+    """(N,3) float32 from an array whose last axis holds 3 values ((N,3), (H,W,3)...)."""
+    a = np.asarray(values, np.float32)
+    if a.ndim == 0 or a.shape[-1] != 3:
+        raise UserError(f"{what}: {name} must be an array of 3-vectors, shape (N, 3), not {a.shape}")
+    return a.reshape(-1, 3)
+
+
+def _rays(origins, directions, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """(N,3) float32 origins and directions, checked: finite, unit directions, as many of each.
+
+    Rays of another kind would not fail, only give wrong fields: a direction
+    of length 2 halves every distance, a NaN spreads through training.
+    """
+    o, d = _triples(origins, what, "origins"), _triples(directions, what, "directions")
+    if o.shape[0] != d.shape[0]:
+        raise UserError(f"{what}: {o.shape[0]} origins but {d.shape[0]} directions")
+    if not (np.isfinite(o).all() and np.isfinite(d).all()):
+        raise UserError(f"{what}: origins and directions must be finite numbers")
+    norms = np.linalg.norm(d, axis=1)
+    if norms.size and np.abs(norms - 1.0).max() > 1e-3:
+        raise UserError(f"{what}: directions must be unit vectors (lengths from {norms.min():.4g} "
+                        f"to {norms.max():.4g})")
+    return o, d
 
 
 class Ensemble:
@@ -53,6 +80,7 @@ class Ensemble:
 
     def __init__(self, bbox_min, bbox_max, n_members: int = 4,
                  config: FieldConfig | None = None, seed: int = 0):
+        require_variant("Ensemble")
         self.config = config if config is not None else FieldConfig()
         self.bbox_min = np.asarray(bbox_min, np.float64).reshape(3)
         self.bbox_max = np.asarray(bbox_max, np.float64).reshape(3)
@@ -151,13 +179,12 @@ class Ensemble:
                 it, e.g. when giving a loaded ensemble back the rays it was
                 trained on.
         """
-        o = np.asarray(origins, np.float32).reshape(-1, 3)
-        d = np.asarray(directions, np.float32).reshape(-1, 3)
-        c = np.asarray(rgb, np.float32).reshape(-1, 3)
+        o, d = _rays(origins, directions, "set_rays")
+        c = _triples(rgb, "set_rays", "rgb")
         m = o.shape[0]
         dist = np.asarray(distance, np.float32).reshape(-1)
         h = np.asarray(hit, bool).reshape(-1)
-        if not (d.shape[0] == c.shape[0] == dist.shape[0] == h.shape[0] == m):
+        if not (c.shape[0] == dist.shape[0] == h.shape[0] == m):
             raise UserError("set_rays: origins, directions, rgb, distance and hit "
                             "must describe the same number of rays")
         if m == 0:
@@ -165,12 +192,8 @@ class Ensemble:
         if m >= 2**31:
             raise UserError("set_rays: too many rays (max 2^31)")
         # Bad rays would only show later, as a diverged loss or NaN distances.
-        if not (np.isfinite(o).all() and np.isfinite(d).all() and np.isfinite(c).all()):
-            raise UserError("set_rays: origins, directions and rgb must be finite numbers")
-        norms = np.linalg.norm(d, axis=1)
-        if np.abs(norms - 1.0).max() > 1e-3:
-            raise UserError(f"set_rays: directions must be unit vectors (lengths from {norms.min():.4g} "
-                            f"to {norms.max():.4g})")
+        if not np.isfinite(c).all():
+            raise UserError("set_rays: rgb must be finite numbers")
         if c.min() < -1e-3 or c.max() > 1.0 + 1e-3:
             raise UserError(f"set_rays: rgb must lie in [0, 1] (got {c.min():.4g} to {c.max():.4g}; "
                             "divide 8-bit colours by 255)")
@@ -333,11 +356,8 @@ class Ensemble:
     def _pad(self, origins, directions):
         """Pad (N,3) rays to a whole number (>= 1) of batches (see
         :meth:`_render_batch`); returns (o, d, N, N_pad, B)."""
-        o = np.asarray(origins, np.float32).reshape(-1, 3)
-        d = np.asarray(directions, np.float32).reshape(-1, 3)
+        o, d = _rays(origins, directions, "rendering")
         n = o.shape[0]
-        if d.shape[0] != n:
-            raise UserError("origins and directions differ in length")
         B = self._render_batch(n)
         n_pad = max(B, -(-n // B) * B)
         op = np.zeros((n_pad, 3), np.float32)

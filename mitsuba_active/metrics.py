@@ -9,9 +9,18 @@ from __future__ import annotations
 import numpy as np
 
 
+def _same_shape(pred, target) -> tuple[np.ndarray, np.ndarray]:
+    """Both as float64; ValueError for different shapes, which numpy would broadcast into a wrong score."""
+    a, b = np.asarray(pred, np.float64), np.asarray(target, np.float64)
+    if a.shape != b.shape:
+        raise ValueError(f"prediction and target differ in shape: {a.shape} and {b.shape}")
+    return a, b
+
+
 def psnr(pred: np.ndarray, target: np.ndarray) -> float:
-    """Peak signal-to-noise ratio in dB for images in [0, 1]."""
-    mse = float(np.mean((np.asarray(pred, np.float64) - np.asarray(target, np.float64)) ** 2))
+    """Peak signal-to-noise ratio in dB for images in [0, 1] of one shape."""
+    a, b = _same_shape(pred, target)
+    mse = float(np.mean((a - b) ** 2))
     return float("inf") if mse == 0 else -10.0 * np.log10(mse)
 
 
@@ -26,7 +35,7 @@ def _gaussian_blur(img: np.ndarray, sigma=1.5, radius=5) -> np.ndarray:
 
 def ssim(pred: np.ndarray, target: np.ndarray) -> float:
     """Structural similarity (Wang et al. 2004): 11x11 Gaussian window, sigma 1.5, mean over channels."""
-    a, b = np.asarray(pred, np.float64), np.asarray(target, np.float64)
+    a, b = _same_shape(pred, target)
     if min(a.shape[:2]) < 11:
         raise ValueError("SSIM needs images of at least 11x11 pixels")
     c1, c2 = 0.01 ** 2, 0.03 ** 2
@@ -40,7 +49,8 @@ def ssim(pred: np.ndarray, target: np.ndarray) -> float:
 
 def distance_error(pred: np.ndarray, target: np.ndarray, mask: np.ndarray) -> float:
     """Mean relative distance error in percent over pixels that hit geometry (NaN if none)."""
-    m = np.asarray(mask, bool) & (np.asarray(target) > 0)
+    pred, target = _same_shape(pred, target)
+    m = np.asarray(mask, bool) & (target > 0)
     if not m.any():
         return float("nan")
     return float(100.0 * np.mean(np.abs(pred[m] - target[m]) / target[m]))

@@ -28,6 +28,10 @@ def test_image_metrics():
     d, m = np.full((4, 4), 2.0), np.zeros((4, 4), bool)
     m[0] = True
     assert distance_error(d * 1.1, d, m) == pytest.approx(10.0)
+    # Shapes that numpy would broadcast into a score of something else.
+    for metric, pred, target in ((psnr, a, a[..., :1]), (ssim, a, a[:, :, None, 0]), (distance_error, d, d[0])):
+        with pytest.raises(ValueError, match="differ in shape"):
+            metric(pred, target, *([m] if metric is distance_error else []))
 
 
 def test_tables_state_the_seed_count_and_mark_cells_with_fewer_seeds():

@@ -91,3 +91,20 @@ def test_fisher_batches_fold_each_pick_into_the_training_information():
     picks, scores = greedy_fisher(h, np.zeros(4), np.ones(3, bool), 2)
     assert scores.argmax() in (0, 1) and picks[0] == 0
     assert picks[1] == 2  # not the duplicate, whose information is already counted
+
+
+@pytest.mark.parametrize("name", ["even", "coverage", "fisher"])
+def test_a_batch_larger_than_the_views_left_names_both_counts(name):
+    # fisher is refused before it computes any Fisher information (no ensemble is needed to say so).
+    from types import SimpleNamespace
+
+    state = PlanningState(CANDS, list(range(11)), ensemble=SimpleNamespace(n_members=1), candidate_rays=(None, None),
+                          rng=np.random.default_rng(0))
+    with pytest.raises(UserError, match="only 1 candidate views are left to choose from, asked for 2"):
+        make_planner(name).select(state, 2)
+
+
+@pytest.mark.parametrize("name", ["rfe", "fisher"])
+def test_scoring_planners_say_what_the_state_lacks(name):
+    with pytest.raises(UserError, match=f"the {name} planner .* has no ensemble and no candidate_rays"):
+        make_planner(name).select(PlanningState(CANDS, [0]), 1)

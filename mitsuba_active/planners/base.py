@@ -51,6 +51,17 @@ class Planner:
             raise UserError(f"the {self.name} planner needs an ensemble of at least {self.min_members} members "
                             f"(--ensemble {self.min_members} or more)")
 
+    def check_state(self, state: PlanningState) -> None:
+        """UserError unless ``state`` holds what this planner scores with: for
+        planners with an ensemble, the ensemble and the candidates' rays."""
+        if not self.needs_ensemble:
+            return
+        missing = [name for name in ("ensemble", "candidate_rays") if getattr(state, name) is None]
+        if missing:
+            raise UserError(f"the {self.name} planner scores candidates with an ensemble over their rays; "
+                            f"the PlanningState has no {' and no '.join(missing)}")
+        self.check_ensemble_size(state.ensemble.n_members)
+
     def select(self, state: PlanningState, batch: int) -> tuple[list[int], np.ndarray | None]:
         """Return ``batch`` candidate indices and the per-candidate scores (C,) they were chosen by, or None."""
         raise NotImplementedError
@@ -65,6 +76,13 @@ def unseen(state: PlanningState) -> np.ndarray:
     mask = np.ones(len(state.candidates), dtype=bool)
     mask[list(state.captured)] = False
     return mask
+
+
+def check_batch(allowed: np.ndarray, batch: int) -> None:
+    """UserError when fewer than ``batch`` candidates are ``allowed`` (C,) bool."""
+    n_left = int(np.count_nonzero(allowed))
+    if n_left < batch:
+        raise UserError(f"only {n_left} candidate views are left to choose from, asked for {batch}")
 
 
 def greedy_top(scores: np.ndarray, allowed: np.ndarray, batch: int) -> list[int]:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import UserError
-from .base import Planner, PlanningState, greedy_top, register, unseen
+from .base import Planner, PlanningState, check_batch, greedy_top, register, unseen
 
 
 def fisher_scores(h_candidates: np.ndarray, h_train: np.ndarray, lam: float) -> np.ndarray:
@@ -73,6 +73,8 @@ class FisherPlanner(Planner):
         return {"lam": self.lam, "probes": self.probes}
 
     def select(self, state: PlanningState, batch: int):
+        self.check_state(state)
+        check_batch(unseen(state), batch)
         ens = state.ensemble
         origins, directions = state.candidate_rays
         seed = int(state.rng.integers(2**31))

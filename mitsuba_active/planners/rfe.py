@@ -51,7 +51,7 @@ class RFEPlanner(Planner):
         return {"form": self.form}
 
     def select(self, state: PlanningState, batch: int):
-        self.check_ensemble_size(0 if state.ensemble is None else state.ensemble.n_members)
+        self.check_state(state)
         origins, directions = state.candidate_rays
         c, r = origins.shape[:2]
         pred = state.ensemble.predict(origins.reshape(-1, 3), directions.reshape(-1, 3))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Planner, PlanningState, greedy_top, register, unseen
+from .base import Planner, PlanningState, check_batch, greedy_top, register, unseen
 
 
 @register
@@ -39,6 +39,7 @@ class CoveragePlanner(Planner):
     name = "coverage"
 
     def select(self, state: PlanningState, batch: int):
+        check_batch(unseen(state), batch)
         dirs = np.stack([c.forward for c in state.candidates])
         taken = list(state.captured)
         picks, first_scores = [], None

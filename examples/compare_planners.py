@@ -9,7 +9,6 @@ import argparse
 from pathlib import Path
 
 import mitsuba_active  # noqa: F401  (selects the Mitsuba variant)
-from mitsuba_active.env import SceneSource
 from mitsuba_active.report import plot_metrics
 from mitsuba_active.run import Run, RunConfig
 from mitsuba_active.scenes import BUNDLED_SCENE
@@ -31,8 +30,7 @@ def main():
     base = dict(scene=args.scene, seed=args.seed, **(tiny if args.tiny else {}))
     cfg = RunConfig(planner=args.planners[0], **base)
     # One source for both planners: the same candidates, held-out views and cached ground truth.
-    source = SceneSource.from_xml(args.scene, n_candidates=cfg.candidates, n_heldout=cfg.heldout,
-                                  resolution=cfg.resolution, spp=cfg.spp)
+    source = cfg.open_source()
     series = {}
     for name in args.planners:
         record = Run(source, RunConfig(planner=name, **base), out / name, progress=not args.tiny).execute()

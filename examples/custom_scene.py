@@ -14,7 +14,6 @@ from pathlib import Path
 import trimesh
 
 import mitsuba_active  # noqa: F401  (selects the Mitsuba variant)
-from mitsuba_active.env import SceneSource
 from mitsuba_active.run import Run, RunConfig
 from mitsuba_active.scene import load_mesh, normalise_vertices, write_ply
 from mitsuba_active.scenes import BUNDLED_SCENE
@@ -67,8 +66,7 @@ def main():
                     initial_steps=20 if tiny else 300, steps_per_view=10 if tiny else 60,
                     eval_steps=30 if tiny else 1500, rays_per_candidate=32 if tiny else 256,
                     field=dict(batch_rays=256, n_samples=16) if tiny else {})
-    source = SceneSource.from_xml(xml, rig=cfg.rig, n_candidates=cfg.candidates, n_heldout=cfg.heldout,
-                                  resolution=cfg.resolution, spp=cfg.spp)
+    source = cfg.open_source()
     record = Run(source, cfg, out / "run", progress=not tiny).execute()
     for m in record["metrics"]:
         print(f"{m['views']:3d} views: PSNR {m['psnr']:.2f} dB")

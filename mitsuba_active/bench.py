@@ -316,7 +316,6 @@ def run_job(job: Job, threads: int | None = None) -> dict:
 
     import mitsuba_active  # noqa: F401
 
-    from .env import SceneSource
     from .run import Run, RunConfig
 
     if threads:
@@ -325,9 +324,7 @@ def run_job(job: Job, threads: int | None = None) -> dict:
     if finished_record(job) is not None:
         return {"job": f"{job.scene}/{job.planner}/{job.seed}", "skipped": True}
     t0 = time.perf_counter()
-    source = SceneSource.from_xml(job.scene_xml, cfg.rig, cfg.candidates, cfg.heldout, cfg.resolution, cfg.fov,
-                                  spp=cfg.spp)
-    Run(source, cfg, job.out, progress=False, log=lambda m: None).execute()
+    Run(cfg.open_source(), cfg, job.out, progress=False, log=lambda m: None).execute()
     return {"job": f"{job.scene}/{job.planner}/{job.seed}", "skipped": False,
             "seconds": round(time.perf_counter() - t0, 1)}
 

@@ -112,7 +112,7 @@ def _rig_options(fn):
                      help="Number of candidate views."),
         click.option("--heldout", "n_heldout", type=int, default=20, show_default=True,
                      help="Number of held-out evaluation views."),
-        click.option("--resolution", type=int, default=64, show_default=True, help="Image width and height."),
+        click.option("--resolution", type=int, default=64, show_default=True, help="Image width and height (--rig xml: width; the sensors' films set the aspect)."),
         click.option("--fov", type=float, default=None, help="Horizontal field of view in degrees [40, rooms 70]."),
         click.option("--spp", type=int, default=64, show_default=True, help="Samples per pixel of ground truth."),
     ]):
@@ -266,7 +266,7 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     try:
         if Path(scene_path).suffix.lower() in MESH_SUFFIXES:
             scene_path = cfg.scene = _author_into_run(scene_path, out)
-        record = _plan(cfg, scene_path, out, quiet, given)
+        record = _plan(cfg, out, quiet, given)
     except BaseException:
         # Without run.json there is nothing to resume: leave nothing half-made
         # behind (an existing folder keeps what it held).
@@ -309,18 +309,16 @@ def _given_options() -> set[str]:
     return {name for name in ctx.params if ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE}
 
 
-def _plan(cfg, scene_path: str, out: Path, quiet: bool, given=frozenset()) -> dict:
-    """Open the scene or dataset and run (or resume) the run in ``out``.
+def _plan(cfg, out: Path, quiet: bool, given=frozenset()) -> dict:
+    """Open the scene or dataset ``cfg.scene`` and run (or resume) the run in ``out``.
 
     ``given``: the options given on the command line, which must apply."""
     from tqdm import tqdm
 
-    from .datasets import open_source
     from .env import SceneSource
     from .run import INTERIOR_DISTANCE_WEIGHT, Run
 
-    source = open_source(scene_path, rig=cfg.rig, n_candidates=cfg.candidates, n_heldout=cfg.heldout,
-                         resolution=cfg.resolution, fov=cfg.fov, spp=cfg.spp, downscale=cfg.downscale)
+    source = cfg.open_source()
     if cfg.downscale is not None and isinstance(source, SceneSource):
         raise UserError("--downscale applies to datasets; a scene renders at --resolution")
     if not isinstance(source, SceneSource):
@@ -334,7 +332,7 @@ def _plan(cfg, scene_path: str, out: Path, quiet: bool, given=frozenset()) -> di
                            err=True)
     if cfg.distance_weight == 0 and isinstance(source, SceneSource) and source.scene.interior:
         # Colour alone leaves a sparse-view field free to fill a room with fog (see README).
-        click.echo(f"note: {Path(scene_path).name} is a room seen from inside, which fits far better "
+        click.echo(f"note: {Path(cfg.scene).name} is a room seen from inside, which fits far better "
                    f"with the distance maps: try --distance-weight {INTERIOR_DISTANCE_WEIGHT:g}", err=True)
     # tqdm.write keeps a line from landing on a progress bar that is being drawn.
     return Run(source, cfg, out, progress=not quiet, log=lambda m: tqdm.write(m, file=sys.stderr)).execute()

@@ -136,6 +136,16 @@ class RunConfig:
             if not ok:
                 raise UserError(message)
 
+    def open_source(self, cache_dir=None):
+        """The view source these settings describe: :func:`~mitsuba_active.datasets.open_source`
+        of ``scene`` with the environment settings (``cache_dir``: see
+        :class:`~mitsuba_active.groundtruth.GroundTruth`)."""
+        from .datasets import open_source
+
+        return open_source(self.scene, rig=self.rig, n_candidates=self.candidates, n_heldout=self.heldout,
+                           resolution=self.resolution, fov=self.fov, spp=self.spp, downscale=self.downscale,
+                           cache_dir=cache_dir)
+
     def report_counts(self) -> list[int]:
         """View counts to evaluate: the requested ones within the budget, and the budget itself."""
         counts = sorted({int(v) for v in self.eval_views if 0 < int(v) <= self.budget} | {self.budget})
@@ -318,11 +328,36 @@ def planner_rng(seed: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(1,)))
 
 
+def source_differences(source, cfg: RunConfig) -> list[str]:
+    """Environment settings of ``cfg`` that a scene source was not made with,
+    as ``"name=value (the source's: value)"`` (datasets are not checked:
+    their frames, not these settings, make the views)."""
+    from .env import SceneSource
+
+    if not isinstance(source, SceneSource):
+        return []
+    have = {"resolution": source.candidates[0].width, "heldout": len(source.heldout),
+            "spp": source.groundtruth.spp}
+    if cfg.rig != "xml":  # the XML's own sensors are as many as there are
+        have["candidates"] = len(source.candidates)
+    unlike = [f"{name}={getattr(cfg, name)!r} (the source's: {value!r})"
+              for name, value in have.items() if getattr(cfg, name) != value]
+    scene = Path(source.scene.path)
+    if not cfg.scene or Path(cfg.scene).resolve() != scene.resolve():
+        unlike.insert(0, f"scene={cfg.scene!r} (the source's: {str(scene)!r})")
+    return unlike
+
+
 class Run:
     """One planning run in a folder; ``Run(...).execute()`` runs or resumes it."""
 
     def __init__(self, source, cfg: RunConfig, out_dir, progress: bool = True, log=print):
         cfg.validate(len(source.candidates))
+        # run.json records cfg as how the run was made: it must describe the source.
+        unlike = source_differences(source, cfg)
+        if unlike:
+            raise UserError(f"the run's settings do not describe its view source: {'; '.join(unlike)} "
+                            "(make the source with RunConfig.open_source())")
         self.source, self.cfg, self.out = source, cfg, Path(out_dir)
         self.progress, self.log = progress, log
         self.planner = make_planner(cfg.planner, **cfg.planner_options)

@@ -1,6 +1,7 @@
 """The acquisition loop: reproducibility, resume, outputs, export, and RFE's preference for the unseen."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -261,3 +262,19 @@ def test_plan_takes_a_mesh(shared_data, tmp_path):
     # The same command again finds the finished run (authoring anew changes nothing).
     res = CliRunner().invoke(main, args)
     assert res.exit_code == 0 and "already complete" in res.output, res.output
+
+
+def test_a_config_that_does_not_describe_its_source_is_refused(source, sphere_xml, tmp_path):
+    from mitsuba_active.errors import UserError
+
+    for changed, named in (({"resolution": 64}, "resolution=64 (the source's: 16)"),
+                           ({"spp": 64, "heldout": 5}, "heldout=5 (the source's: 3); spp=64 (the source's: 4)"),
+                           ({"scene": str(sphere_xml)}, f"scene={str(sphere_xml)!r}")):
+        cfg = RunConfig(**{**TINY, "scene": str(source.scene.path), **changed})
+        with pytest.raises(UserError, match="do not describe its view source: " + re.escape(named)):
+            Run(source, cfg, tmp_path / "r")
+        assert not (tmp_path / "r").exists()
+    # The settings' own source is theirs.
+    cfg = RunConfig(**{**TINY, "scene": str(source.scene.path)})
+    own = Run(cfg.open_source(cache_dir=False), cfg, tmp_path / "r").source
+    assert [c.to_dict() for c in own.candidates] == [c.to_dict() for c in source.candidates]

@@ -137,6 +137,8 @@ def load_suite(path) -> Suite:
             raise UserError(f"{path}: scene '{name}': {exc}") from None
         if not (path.parent / s[kind]).is_file():  # before a suite authors or runs anything
             raise UserError(f"{path}: scene '{name}': {kind} file not found: {path.parent / s[kind]}")
+        if kind == "xml" and Path(s[kind]).suffix.lower() != ".xml":  # as `plan` tells scenes from datasets
+            raise UserError(f"{path}: scene '{name}': xml = {s[kind]!r} is not a Mitsuba scene file (.xml)")
         scenes.append(SuiteScene(name, (path.parent / s[kind]).resolve(), kind, scene_options,
                                  {k: v for k, v in s.items() if k in run_fields}))
     if not scenes:

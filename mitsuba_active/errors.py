@@ -14,5 +14,6 @@ class SetupError(UserError, ImportError):
     for ``cuda_ad_rgb``): raised by ``import mitsuba_active``.
 
     An ``ImportError``, so that a pipeline with optional dependencies can catch
-    it; left uncaught, it ends the program with its one line, not a traceback.
+    it; left uncaught, it ends the program with its one line, not a traceback,
+    and exit code 1 (it stops the import, before the command line can run).
     """

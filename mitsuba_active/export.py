@@ -49,6 +49,9 @@ def export_transforms(run_dir, out_dir=None) -> Path:
     distances = rec.get("distances", True)
     ref = cams[0]
     k = ref.intrinsics()
+    # Cameras of their own (rig xml) may differ in field of view: then every
+    # frame carries its intrinsics, which nerfstudio reads before the top level's.
+    per_frame = any(cam.fov != ref.fov for cam in cams)
     frames = []
     (out / "images").mkdir(parents=True, exist_ok=True)
     if distances:
@@ -60,6 +63,10 @@ def export_transforms(run_dir, out_dir=None) -> Path:
         if distances:
             shutil.copyfile(run_dir / "views" / f"view_{n:03d}.exr", out / dist)
             frame["distance_file_path"] = dist
+        if per_frame:
+            kc = cam.intrinsics()
+            frame.update(camera_angle_x=math.radians(cam.fov), fl_x=kc[0, 0], fl_y=kc[1, 1], cx=kc[0, 2],
+                         cy=kc[1, 2])
         frames.append({**frame, "candidate": int(index),
                        "transform_matrix": mitsuba_to_opengl(cam.to_world).tolist()})
     data = {"camera_model": "OPENCV", "camera_angle_x": math.radians(ref.fov),

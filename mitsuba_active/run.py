@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import os
 import time
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -82,6 +83,10 @@ class RunConfig:
     eval_steps: int = 1500
     distance_weight: float = 0.0
     field: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if isinstance(self.scene, os.PathLike):  # run.json holds it as text
+            self.scene = os.fspath(self.scene)
 
     #: Settings that are whole numbers, and those that are numbers (None: unset).
     WHOLE = ("budget", "initial_views", "ensemble", "batch", "seed", "resolution", "candidates", "heldout",
@@ -330,8 +335,10 @@ def planner_rng(seed: int) -> np.random.Generator:
 
 def source_differences(source, cfg: RunConfig) -> list[str]:
     """Environment settings of ``cfg`` that a scene source was not made with,
-    as ``"name=value (the source's: value)"`` (datasets are not checked:
-    their frames, not these settings, make the views)."""
+    as ``"name=value (the source's: value)"``: the scene, image width, view
+    counts and samples per pixel. Not ``rig`` and ``fov``, so that a source
+    with cameras of the caller's own can run (run.json records the cameras
+    themselves). Datasets are not checked: their frames make the views."""
     from .env import SceneSource
 
     if not isinstance(source, SceneSource):

@@ -120,9 +120,9 @@ def set_variant(name: str | None = None) -> str:
             mi.set_variant(name)
         except Exception as exc:  # e.g. no CUDA driver
             raise UserError(f"cannot use Mitsuba variant '{name}': {exc}") from None
-        if current is not None:
-            # The caller's pipeline chose another variant (scalar, spectral...):
-            # its Mitsuba objects and types stay in that one.
+        if current is not None and current not in VARIANTS:
+            # The caller's pipeline chose a variant the fields cannot run on
+            # (scalar, spectral...): its Mitsuba objects and types stay in that one.
             warnings.warn(f"mitsuba-active switched Mitsuba from variant '{current}' to '{name}' "
                           f"(it needs one of {', '.join(VARIANTS)}); objects made under '{current}' "
                           "do not mix with it", stacklevel=2)

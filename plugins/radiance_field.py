@@ -11,7 +11,7 @@
 
 Parameters:
     filename: an ensemble written by ``Ensemble.save`` (``.npz``); a relative
-        path is looked up beside the scene XML first, as Mitsuba's own plugins do.
+        path is read from the current folder or, failing that, beside the scene XML.
     linear: bool, default True. The field stores sRGB colours in [0, 1];
         with ``linear`` the mean colour is converted to linear RGB, so that
         Mitsuba's film, EXR and PNG writers treat it as radiance. False
@@ -32,10 +32,12 @@ distances from the optical centre, as in :func:`mitsuba_active.cameras.sensor_ra
 The sensor comes from the ``render`` call; :meth:`sample` called on its own
 keeps the origins it is given.
 
-RGB variants with a JIT backend only (``llvm_ad_rgb``, ``cuda_ad_rgb``, ...).
+Variants ``llvm_ad_rgb`` and ``cuda_ad_rgb`` only.
 """
 
 from __future__ import annotations
+
+import os
 
 NAME = "radiance_field"
 AOV_NAMES = ["variance.R", "variance.G", "variance.B", "distance.Y", "distance_var.Y", "opacity.Y"]
@@ -44,8 +46,10 @@ _classes: dict = {}  # variant -> integrator class (each variant has its own mi.
 
 
 def supported(variant: str | None) -> bool:
-    """True for the variants the integrator runs on: JIT (llvm/cuda) RGB."""
-    return bool(variant) and variant.split("_")[0] in ("llvm", "cuda") and variant.endswith("_rgb")
+    """True for the variants the integrator (and every field) runs on."""
+    from mitsuba_active.variant import VARIANTS
+
+    return variant in VARIANTS
 
 
 def integrator_class():
@@ -54,10 +58,23 @@ def integrator_class():
 
     variant = mi.variant()
     if not supported(variant):
-        raise RuntimeError(f"the {NAME} integrator needs an llvm_*_rgb or cuda_*_rgb variant, not {variant}")
+        raise RuntimeError(f"the {NAME} integrator needs Mitsuba variant llvm_ad_rgb or cuda_ad_rgb, not {variant}")
     if variant not in _classes:
         _classes[variant] = _make_class(mi.SamplingIntegrator)
     return _classes[variant]
+
+
+def _ensemble_path(filename: str) -> str:
+    """``filename`` as given when it names a file from the current folder;
+    otherwise as Mitsuba's file resolver finds it, which while a scene XML
+    loads looks beside that XML first. (The resolver alone would also search
+    the folder Python was started in, and could find another run's
+    ``ensemble_NNN.npz`` there.)"""
+    import mitsuba as mi
+
+    if os.path.isabs(filename) or os.path.exists(filename):
+        return filename
+    return str(mi.file_resolver().resolve(filename))
 
 
 def create(props):
@@ -84,8 +101,7 @@ def _make_class(base):
 
             if "filename" not in props:
                 raise ValueError(f"{NAME}: the 'filename' parameter (a saved ensemble) is required")
-            # Relative to the scene XML's folder, as Mitsuba's own plugins resolve their files.
-            self.filename = str(mi.file_resolver().resolve(str(props["filename"])))
+            self.filename = _ensemble_path(str(props["filename"]))
             self.linear = bool(props.get("linear", True))
             self.ensemble = Ensemble.load(self.filename)
             self._sensor = None

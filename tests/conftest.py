@@ -51,3 +51,25 @@ def tiny_source(xml, n_candidates=12, n_heldout=4, resolution=16, spp=4, cache_d
 @pytest.fixture()
 def rng():
     return np.random.default_rng(0)
+
+
+def two_sensor_xml(tmp_path, second_film="48x24"):
+    """A sphere seen by two sensors of the author's: fields of view 30 (vertical) and 50 degrees."""
+    w, h = second_film.split("x")
+    xml = tmp_path / "two_sensors.xml"
+    xml.write_text(f"""<scene version="3.0.0">
+  <shape type="sphere"><float name="radius" value="0.5"/></shape>
+  <emitter type="constant"/>
+  <sensor type="perspective">
+    <float name="fov" value="30"/><string name="fov_axis" value="y"/>
+    <float name="near_clip" value="0.5"/><float name="far_clip" value="100"/>
+    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="48"/><integer name="height" value="24"/></film>
+  </sensor>
+  <sensor type="perspective">
+    <float name="fov" value="50"/>
+    <transform name="to_world"><lookat origin="4, 0, 0" target="0, 0, 0" up="0, 1, 0"/></transform>
+    <film type="hdrfilm"><integer name="width" value="{w}"/><integer name="height" value="{h}"/></film>
+  </sensor>
+</scene>""")
+    return xml

@@ -200,6 +200,15 @@ def test_bad_suites(tmp_path, text, message):
         load_suite(bad)
 
 
+def test_a_suite_scene_that_is_no_xml_file_is_refused(tmp_path, shared_data):
+    import shutil
+
+    shutil.copy(shared_data / "mitsuba/simple/scene.xml", tmp_path / "scene.txt")
+    (tmp_path / "s.toml").write_text("[[scenes]]\nxml = 'scene.txt'\n")
+    with pytest.raises(UserError, match="'scene.txt' is not a Mitsuba scene file"):
+        load_suite(tmp_path / "s.toml")
+
+
 def test_missing_suite(tmp_path):
     with pytest.raises(UserError, match="not found"):
         load_suite(tmp_path / "none.toml")

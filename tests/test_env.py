@@ -4,7 +4,7 @@ from gymnasium.utils.env_checker import check_env
 
 from mitsuba_active.env import ActiveViewEnv
 from mitsuba_active.errors import UserError
-from tests.conftest import tiny_source
+from tests.conftest import tiny_source, two_sensor_xml
 
 
 @pytest.fixture(scope="module")
@@ -82,30 +82,8 @@ def test_capture_pose_snaps_only_to_the_same_camera(tmp_path):
                        src.candidates[0].to_world, atol=1e-3)
 
 
-def _two_sensor_xml(tmp_path, second_film="48x24"):
-    """A sphere seen by two sensors of the author's: fields of view 30 (vertical) and 50 degrees."""
-    w, h = second_film.split("x")
-    xml = tmp_path / "two_sensors.xml"
-    xml.write_text(f"""<scene version="3.0.0">
-  <shape type="sphere"><float name="radius" value="0.5"/></shape>
-  <emitter type="constant"/>
-  <sensor type="perspective">
-    <float name="fov" value="30"/><string name="fov_axis" value="y"/>
-    <float name="near_clip" value="0.5"/><float name="far_clip" value="100"/>
-    <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
-    <film type="hdrfilm"><integer name="width" value="48"/><integer name="height" value="24"/></film>
-  </sensor>
-  <sensor type="perspective">
-    <float name="fov" value="50"/>
-    <transform name="to_world"><lookat origin="4, 0, 0" target="0, 0, 0" up="0, 1, 0"/></transform>
-    <film type="hdrfilm"><integer name="width" value="{w}"/><integer name="height" value="{h}"/></film>
-  </sensor>
-</scene>""")
-    return xml
-
-
 def test_xml_rig_keeps_the_authors_sensors_and_info_describes_each_view(tmp_path):
-    src = tiny_source(_two_sensor_xml(tmp_path), n_heldout=2, resolution=16, rig="xml")
+    src = tiny_source(two_sensor_xml(tmp_path), n_heldout=2, resolution=16, rig="xml")
     first, second = src.candidates
     # The films' 2:1 aspect, the first sensor's vertical 30 degrees and its clip distances.
     assert {(c.width, c.height) for c in src.candidates + src.heldout} == {(16, 8)}
@@ -123,7 +101,7 @@ def test_xml_rig_keeps_the_authors_sensors_and_info_describes_each_view(tmp_path
 
 def test_xml_rig_refuses_sensors_of_different_shapes(tmp_path):
     with pytest.raises(UserError, match="different aspect ratios.*32x32, 48x24"):
-        tiny_source(_two_sensor_xml(tmp_path, second_film="32x32"), n_heldout=2, resolution=16, rig="xml")
+        tiny_source(two_sensor_xml(tmp_path, second_film="32x32"), n_heldout=2, resolution=16, rig="xml")
 
 
 def test_wide_images_keep_the_whole_object_in_view(sphere_xml):

@@ -104,3 +104,16 @@ def test_a_relative_filename_is_found_beside_the_scene_xml(field_path, tmp_path,
     monkeypatch.chdir(tmp_path)  # not the scene's folder
     img = np.array(mi.render(mi.load_file("scene/scene.xml"), spp=1))
     assert img.shape == (3, 4, 9) and np.all(np.isfinite(img))
+
+
+def test_other_variants_are_told_which_the_integrator_needs():
+    import os
+    import subprocess
+    import sys
+
+    code = ("import mitsuba_active, mitsuba as mi\nmi.set_variant('llvm_ad_spectral')\n"
+            "try:\n    mi.load_dict({'type': 'radiance_field', 'filename': 'x.npz'})\n"
+            "except Exception as exc:\n    print(str(exc).strip().splitlines()[-1])\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=dict(os.environ, MITSUBA_ACTIVE_VARIANT="llvm_ad_rgb"))
+    assert "needs Mitsuba variant llvm_ad_rgb or cuda_ad_rgb, not llvm_ad_spectral" in proc.stdout, proc.stderr

@@ -11,7 +11,7 @@ from mitsuba_active.cli import main
 from mitsuba_active.datasets import opengl_to_mitsuba
 from mitsuba_active.export import export_transforms
 from mitsuba_active.run import Run, RunConfig
-from tests.conftest import tiny_source
+from tests.conftest import tiny_source, two_sensor_xml
 
 TINY = dict(budget=4, initial_views=2, ensemble=2, resolution=16, candidates=10, heldout=3, spp=4,
             eval_views=[2, 4], initial_steps=20, steps_per_view=10, eval_steps=30, rays_per_candidate=32,
@@ -144,6 +144,18 @@ def test_export_round_trips_poses(source, tmp_path):
         export_transforms(tmp_path / "r", tmp_path / "ds2")
 
 
+def test_export_keeps_each_cameras_field_of_view(tmp_path):
+    from mitsuba_active.datasets import DatasetSource
+
+    cfg = RunConfig(**{**TINY, "scene": str(two_sensor_xml(tmp_path)), "rig": "xml", "planner": "even",
+                       "budget": 2, "initial_views": 1, "heldout": 2, "eval_views": [2]})
+    source = cfg.open_source(cache_dir=False)
+    Run(source, cfg, tmp_path / "r", progress=False, log=lambda m: None).execute()
+    exported = DatasetSource.from_path(export_transforms(tmp_path / "r", tmp_path / "ds"))
+    fovs = sorted(c.fov for c in exported.candidates + exported.heldout)
+    assert fovs == pytest.approx(sorted(c.fov for c in source.candidates), abs=1e-4) and fovs[0] != fovs[1]
+
+
 def test_rfe_prefers_the_unseen_side(sphere_xml, tmp_path):
     """Train on views of one side of a ball; the far side must score higher."""
     from mitsuba_active.cameras import fibonacci_sphere
@@ -273,8 +285,8 @@ def test_a_config_that_does_not_describe_its_source_is_refused(source, sphere_xm
         cfg = RunConfig(**{**TINY, "scene": str(source.scene.path), **changed})
         with pytest.raises(UserError, match="do not describe its view source: " + re.escape(named)):
             Run(source, cfg, tmp_path / "r")
-        assert not (tmp_path / "r").exists()
-    # The settings' own source is theirs.
-    cfg = RunConfig(**{**TINY, "scene": str(source.scene.path)})
+    # The settings' own source is theirs; a scene given as a Path is recorded as text.
+    cfg = RunConfig(**{**TINY, "scene": source.scene.path})
+    assert isinstance(cfg.scene, str)
     own = Run(cfg.open_source(cache_dir=False), cfg, tmp_path / "r").source
     assert [c.to_dict() for c in own.candidates] == [c.to_dict() for c in source.candidates]

@@ -92,11 +92,12 @@ def greedy_top(scores: np.ndarray, allowed: np.ndarray, batch: int) -> list[int]
     ranks first.
     """
     scores = np.asarray(scores, dtype=np.float64)
+    check_batch(allowed, batch)
     ok = np.flatnonzero(np.asarray(allowed, dtype=bool) & ~np.isnan(scores))
     if len(ok) < batch:
         n_left = int(np.count_nonzero(allowed))
-        why = "" if len(ok) == n_left else f" ({n_left - len(ok)} of the {n_left} left could not be scored)"
-        raise UserError(f"only {len(ok)} candidate views are left to choose from, asked for {batch}{why}")
+        raise UserError(f"only {len(ok)} candidate views are left to choose from, asked for {batch} "
+                        f"({n_left - len(ok)} of the {n_left} left could not be scored)")
     order = np.lexsort((ok, -scores[ok]))
     return [int(ok[i]) for i in order[:batch]]
 

@@ -278,24 +278,16 @@ def _author_suite_scene(sc, xml: Path, jobs: list[Job]) -> None:
     """Author a mesh scene of the suite, unless its runs in the suite folder
     were made with another scene (edited options or mesh): then nothing is
     replaced, and the suite is refused."""
-    import shutil
-    import tempfile
+    from .scene import scene_from_mesh
 
-    from .scene import content_hash, move_scene_files, scene_from_mesh
-
-    xml.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".mitsuba-active-", dir=xml.parent))
-    try:
-        scene_from_mesh(sc.path, staging / xml.name, **sc.scene_options)
-        digest = content_hash(staging / xml.name)
+    def same_scene(digest: str) -> None:
         stale = [j.out for j in jobs if (rec := _recorded(j)) and rec.get("content_hash") not in (None, digest)]
         if stale:
             raise UserError(f"the runs of scene '{sc.name}' in {Path(stale[0]).parent.parent.parent} were made with "
                             "another version of it (its options or mesh changed); use another --out, or undo "
                             "the change")
-        move_scene_files(staging, xml.parent, xml.name)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
+
+    scene_from_mesh(sc.path, xml, check=same_scene, **sc.scene_options)
 
 
 def _refuse_other_runs(jobs: list[Job]) -> None:
@@ -306,8 +298,7 @@ def _refuse_other_runs(jobs: list[Job]) -> None:
         rec = _recorded(job)
         if rec is None:
             continue
-        changed = config_differences(rec.get("config"), json.loads(json.dumps(job.config)),
-                                     compare_scene=job.content_hash is None)
+        changed = config_differences(rec.get("config"), job.config, compare_scene=job.content_hash is None)
         if changed:
             raise UserError(other_settings(job.out, changed, "use another --out for this variant of the suite"))
 
@@ -452,8 +443,7 @@ def finished_record(job: Job) -> dict | None:
         return None
     if job.content_hash is not None and rec.get("content_hash") != job.content_hash:
         return None  # the scene changed since
-    current = json.loads(json.dumps(job.config))
-    return rec if same_config(rec.get("config"), current, compare_scene=job.content_hash is None) else None
+    return rec if same_config(rec.get("config"), job.config, compare_scene=job.content_hash is None) else None
 
 
 def collect(jobs: list[Job]) -> dict:

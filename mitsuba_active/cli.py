@@ -112,7 +112,8 @@ def _rig_options(fn):
                      help="Number of candidate views."),
         click.option("--heldout", "n_heldout", type=int, default=20, show_default=True,
                      help="Number of held-out evaluation views."),
-        click.option("--resolution", type=int, default=64, show_default=True, help="Image width and height (--rig xml: width; the sensors' films set the aspect)."),
+        click.option("--resolution", type=int, default=64, show_default=True,
+                     help="Image width and height (--rig xml: width; the sensors' films set the aspect)."),
         click.option("--fov", type=float, default=None, help="Horizontal field of view in degrees [40, rooms 70]."),
         click.option("--spp", type=int, default=64, show_default=True, help="Samples per pixel of ground truth."),
     ]):
@@ -281,26 +282,18 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
 def _author_into_run(mesh, out: Path) -> str:
     """Author the scene of a mesh in ``OUT/scene``; returns its XML path.
 
-    The scene is made in a temporary folder first: an existing run's scene is
-    never overwritten, so a run folder holding another scene is refused as it is.
+    A folder holding a run of another scene is refused before its scene is replaced.
     """
-    import tempfile
-
-    from .scene import content_hash, move_scene_files, scene_from_mesh
+    from .scene import content_hash, scene_from_mesh
 
     target = out / "scene" / f"{Path(mesh).stem}.xml"
-    if Path(mesh).resolve().parent == target.parent.resolve():
-        # The mesh lives where its scene goes: scene_from_mesh keeps it and names its copy apart.
-        return str(scene_from_mesh(mesh, target))
-    with tempfile.TemporaryDirectory(prefix="mitsuba-active-scene-") as tmp:
-        fresh = scene_from_mesh(mesh, Path(tmp) / target.name)
-        if target.is_file() and content_hash(target) == content_hash(fresh):
-            return str(target)  # authoring is deterministic: this run's own scene
-        if (out / "run.json").is_file():
+
+    def same_scene(digest: str) -> None:
+        # Authoring is deterministic: the run's own scene comes out the same.
+        if (out / "run.json").is_file() and not (target.is_file() and content_hash(target) == digest):
             raise UserError(f"{out} holds a run of another scene; choose another --out folder")
-        target.parent.mkdir(parents=True, exist_ok=True)
-        move_scene_files(tmp, target.parent, target.name)
-    return str(target)
+
+    return str(scene_from_mesh(mesh, target, check=same_scene))
 
 
 def _given_options() -> set[str]:

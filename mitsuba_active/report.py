@@ -18,6 +18,15 @@ def _plt():
     return plt
 
 
+def _save(fig, path) -> Path:
+    """Lay out ``fig``, write it to ``path`` as PNG (atomically) and free it."""
+    fig.tight_layout()
+    with atomic_write(path) as tmp:
+        fig.savefig(tmp, format="png")
+    _plt().close(fig)
+    return Path(path)
+
+
 METRIC_LABELS = {"psnr": "held-out PSNR (dB)", "ssim": "held-out SSIM",
                  "distance_error": "distance error (%)"}
 
@@ -54,12 +63,7 @@ def plot_metrics(series: dict[str, list[dict]], out_dir, title: str = "", bands:
         ax.set_title(title)
         ax.grid(alpha=0.3)
         ax.legend()
-        fig.tight_layout()
-        path = Path(out_dir) / f"{metric}.png"
-        with atomic_write(path) as tmp:
-            fig.savefig(tmp, format="png")
-        plt.close(fig)
-        written.append(path)
+        written.append(_save(fig, Path(out_dir) / f"{metric}.png"))
     return written
 
 
@@ -82,11 +86,7 @@ def contact_sheet(images: list, labels: list[str], path, columns: int = 5) -> Pa
             img = images[k]
             ax.imshow(np.clip(img, 0.0, 1.0) if isinstance(img, np.ndarray) else iio.imread(img))
             ax.set_title(labels[k], fontsize=8)
-    fig.tight_layout()
-    with atomic_write(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path)
 
 
 def up_vertical(points, up=(0.0, 1.0, 0.0)) -> np.ndarray:
@@ -144,8 +144,4 @@ def plot_views(candidates, captured, heldout, bbox_min, bbox_max, path, up=(0.0,
     ax.set_box_aspect((1, 1, 1))
     ax.set_title(title, fontsize=9)
     ax.legend(loc="upper left", fontsize=7)
-    fig.tight_layout()
-    with atomic_write(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path)

@@ -204,7 +204,8 @@ INTERIOR_DISTANCE_WEIGHT = 10.0
 
 def config_differences(recorded, current: dict, compare_scene: bool = True) -> list[str]:
     """The settings in which a run record's config (a dict from run.json)
-    differs from ``current``, as ``"name: recorded -> current"`` lines.
+    differs from ``current`` (a config dict, compared as run.json would hold
+    it), as ``"name: recorded -> current"`` lines.
 
     Scene paths compare as resolved paths, so that a relative and an absolute
     path to one scene match. Callers that check the scene's content hash pass
@@ -215,7 +216,7 @@ def config_differences(recorded, current: dict, compare_scene: bool = True) -> l
         return ["config: missing"]
 
     def normal(config):
-        config = dict(config)
+        config = json.loads(json.dumps(config, default=_json_default))  # tuples as lists, numpy as numbers
         if isinstance(config.get("eval_views"), list):  # the same counts in any order
             config["eval_views"] = sorted(set(config["eval_views"]))
         # The fields a planner actually trains: none for even (any --ensemble

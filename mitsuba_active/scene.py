@@ -213,19 +213,17 @@ def _scene_xml(mesh_file: str, texture_file: str | None, opts: SceneOptions) -> 
     return "\n".join(lines) + "\n"
 
 
-def move_scene_files(src_dir: Path, out_dir: Path, xml_name: str) -> None:
-    """Move an authored scene's files from ``src_dir`` into ``out_dir``, the XML
-    last: an XML on disk always finds its mesh and texture."""
-    for f in sorted(Path(src_dir).iterdir(), key=lambda f: f.name == xml_name):
-        shutil.move(str(f), Path(out_dir) / f.name)
-
-
-def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **kwargs) -> Path:
+def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, check=None, **kwargs) -> Path:
     """Author a Mitsuba scene XML around a mesh; returns the XML path.
 
     The normalised mesh is written as ``<stem>.ply`` next to ``out_xml``
     (with its texture image when it has one). Either every file is
     written, or none is. ``kwargs`` override fields of :class:`SceneOptions`.
+
+    ``check``, if given, is called with the new scene's :func:`content_hash`
+    once it is authored and validated, before any of its files lands: it
+    raises UserError to refuse the scene (a folder holding runs of another
+    version of it), and then nothing is written or replaced.
     """
     opts = dataclasses.replace(options or SceneOptions(), **kwargs)  # checked by __post_init__
     if opts.env_radiance == 0 and not opts.sun and opts.point_lights == 0:
@@ -262,7 +260,11 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, **k
             _load_mitsuba(staging / out_xml.name)
         except UserError as exc:  # name the files as the user will find them, not the staging folder
             raise UserError(str(exc).replace(str(staging), str(out_dir))) from None
-        move_scene_files(staging, out_dir, out_xml.name)
+        if check is not None:
+            check(content_hash(staging / out_xml.name))
+        # The XML lands last: an XML on disk always finds its mesh and texture.
+        for f in sorted(staging.iterdir(), key=lambda f: f.name == out_xml.name):
+            os.replace(f, out_dir / f.name)
     except BaseException:
         remove_new(out_dir, *added)
         raise

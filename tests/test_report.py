@@ -32,8 +32,6 @@ def test_camera_plot_of_a_run_with_repeats(tmp_path):
 def test_atomic_write_leaves_the_file_whole_or_absent(tmp_path):
     import os
 
-    import pytest
-
     from mitsuba_active.imageio_utils import atomic_write
 
     target = tmp_path / "a" / "out.json"

@@ -66,6 +66,12 @@ def _one_line_errors(fn):
             sys.exit(2)
         except KeyboardInterrupt:
             click.echo("mitsuba-active: interrupted", err=True)
+            # An interrupt that landed inside exec() of a source string (dataclasses
+            # make their methods so, during a late import) leaves CPython's flag for
+            # an unhandled KeyboardInterrupt set, and under `python -m` the process
+            # would then end by SIGINT instead of this exit code. Each exec() of a
+            # string starts by clearing that flag.
+            exec("None")
             sys.exit(130)
         finally:
             if handled:  # None: a handler not set from Python, which cannot be put back

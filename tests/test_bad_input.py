@@ -501,6 +501,17 @@ def test_sigterm_stops_plan_like_ctrl_c(tmp_path, spot_xml):
     assert not out.exists()
 
 
+def test_an_interrupt_inside_a_late_import_still_exits_130(tmp_path):
+    """An interrupt raised within exec() of a string (as dataclasses build their
+    methods while a module is imported) must not turn the exit into a SIGINT death."""
+    (tmp_path / "interrupted_command.py").write_text(
+        "from mitsuba_active.cli import _one_line_errors\n\n\n@_one_line_errors\ndef command():\n"
+        "    exec('raise KeyboardInterrupt')\n\n\ncommand()\n")
+    proc = subprocess.run([sys.executable, "-m", "interrupted_command"], capture_output=True, text=True,
+                          cwd=tmp_path, env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
+    assert proc.returncode == 130 and proc.stderr.strip() == "mitsuba-active: interrupted", proc.stderr
+
+
 @pytest.mark.parametrize("args,needle", [
     (["--planner", "even", "--ensemble", "3"], "trains no ensemble"),
     (["--planner", "fisher", "--ensemble", "3"], "trains 1 field"),

@@ -3,7 +3,7 @@
 A suite is a TOML file (see ``benchmarks/suites/shared.toml``)::
 
     name = "mine"
-    planners = ["random", "even", "rfe"]
+    planners = ["random", "even", "rfe", "my_planners.py:MyPlanner"]   # a file beside the suite
     [defaults]              # RunConfig fields for every scene
     candidates = 100
     [[scenes]]
@@ -95,7 +95,7 @@ class Suite:
 
 def load_suite(path) -> Suite:
     """Parse and check a suite file; UserError on anything malformed."""
-    from .planners import make_planner
+    from .planners.base import planner_class, resolve_reference
     from .scene import SceneOptions
 
     path = Path(path)
@@ -113,8 +113,13 @@ def load_suite(path) -> Suite:
     planners = data.get("planners", ["random", "even", "rfe"])
     if not isinstance(planners, list) or not all(isinstance(p, str) for p in planners):
         raise UserError(f"{path}: planners must be a list of names, e.g. planners = [\"even\", \"rfe\"]")
-    for p in planners:
-        make_planner(p)
+    # A planner file is named relative to the suite, as its scenes are.
+    planners = [resolve_reference(p, path.parent) for p in planners]
+    for p in planners:  # their options are checked with each job's settings
+        try:
+            planner_class(p)
+        except UserError as exc:
+            raise UserError(f"{path}: {exc}") from None
     defaults = data.get("defaults", {})
     bad = set(defaults) - run_fields
     if bad:
@@ -194,6 +199,7 @@ class Job:
     config: dict
     out: str
     content_hash: str | None = None  #: of the scene as it is now (None: its XML is missing)
+    planner_digest: str | None = None  #: of a planner file of the user's own (None: the package's planner)
 
 
 def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=None, scenes=None,
@@ -208,7 +214,8 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
     or other settings is refused before anything is replaced or run. Without
     ``author`` (reports only) the scenes are left as they are.
     """
-    from .planners import make_planner
+    from .planners import make_planner, planner_label
+    from .planners.base import planner_digest, planner_folder, resolve_reference
     from .run import RunConfig, field_config
     from .scene import content_hash
 
@@ -222,7 +229,17 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
     prof = dict(PROFILES[profile])
     # A seed or planner named twice is one run, not two in one folder.
     seeds = list(dict.fromkeys(seeds or prof["seeds"]))
-    planners = list(dict.fromkeys(planners or suite.planners))
+    # The suite's planner files are named relative to it; a --planners entry
+    # is one of them (by the name its tables show) or relative to the current folder.
+    suite_refs = {planner_label(p): p for p in suite.planners}
+    planners = list(dict.fromkeys(suite_refs.get(planner_label(p)) or resolve_reference(p)
+                                  for p in planners or suite.planners))
+    folders = {}
+    for p in planners:  # files of one name in two folders: their tables and run folders would mix
+        other = folders.setdefault(planner_folder(p).casefold(), p)
+        if other != p:
+            raise UserError(f"the planners {planner_label(other)} and {planner_label(p)} would share run folders "
+                            "and table rows; rename one of their files")
     prof.pop("seeds")
     jobs, meshes = [], {}
     for sc in suite.scenes:
@@ -251,8 +268,9 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                 # Options the runs would refuse, refused before anything is written.
                 make_planner(planner, **cfg.planner_options).check_ensemble_size(cfg.ensemble)
                 field_config(cfg)
-                jobs.append(Job(sc.name, planner, int(seed), str(xml), asdict(cfg),
-                                str(out_dir / "runs" / sc.name / f"{planner}-seed{seed}")))
+                jobs.append(Job(sc.name, planner_label(planner), int(seed), str(xml), asdict(cfg),
+                                str(out_dir / "runs" / sc.name / f"{planner_folder(planner)}-seed{seed}"),
+                                planner_digest=planner_digest(planner)))
     if author:
         for sc in suite.scenes:
             if sc.name in meshes:
@@ -301,6 +319,9 @@ def _refuse_other_runs(jobs: list[Job]) -> None:
         changed = config_differences(rec.get("config"), job.config, compare_scene=job.content_hash is None)
         if changed:
             raise UserError(other_settings(job.out, changed, "use another --out for this variant of the suite"))
+        if rec.get("planner_digest") != job.planner_digest:
+            raise UserError(f"{Path(job.out).parent.parent.parent} holds runs made with another version of the "
+                            f"planner's code ({job.planner}); use another --out, or undo the change")
 
 
 def run_job(job: Job, threads: int | None = None) -> dict:
@@ -309,6 +330,7 @@ def run_job(job: Job, threads: int | None = None) -> dict:
 
     import mitsuba_active  # noqa: F401
 
+    from .planners.base import planner_digest
     from .run import Run, RunConfig
 
     if threads:
@@ -316,6 +338,9 @@ def run_job(job: Job, threads: int | None = None) -> dict:
     cfg = RunConfig(**job.config)
     if finished_record(job) is not None:
         return {"job": f"{job.scene}/{job.planner}/{job.seed}", "skipped": True}
+    if planner_digest(cfg.planner) != job.planner_digest:  # one suite, one version of each planner
+        raise UserError(f"the planner's code ({job.planner}) changed while the suite ran; its runs so far "
+                        "are kept: undo the change to go on, or use another --out")
     t0 = time.perf_counter()
     Run(cfg.open_source(), cfg, job.out, progress=False, log=lambda m: None).execute()
     return {"job": f"{job.scene}/{job.planner}/{job.seed}", "skipped": False,
@@ -443,6 +468,8 @@ def finished_record(job: Job) -> dict | None:
         return None
     if job.content_hash is not None and rec.get("content_hash") != job.content_hash:
         return None  # the scene changed since
+    if rec.get("planner_digest") != job.planner_digest:
+        return None  # the planner's code changed since
     return rec if same_config(rec.get("config"), job.config, compare_scene=job.content_hash is None) else None
 
 

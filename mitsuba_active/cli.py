@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import functools
 import json
-import re
 import signal
 import sys
 import threading
@@ -203,7 +202,8 @@ def _parse_counts(text: str) -> list[int]:
 @main.command()
 @click.argument("scene_path", required=False, type=click.Path())
 @click.option("--planner", default="rfe", show_default=True,
-              help="View planner: rfe, fisher, coverage, even or random.")
+              help="View planner: rfe, fisher, coverage, even or random; one of your own as FILE.py:CLASS "
+                   "(see examples/custom_planner.py).")
 @click.option("--budget", type=int, default=20, show_default=True, help="Views captured in total.")
 @click.option("--initial-views", type=int, default=2, show_default=True, help="Random views before planning.")
 @click.option("--ensemble", type=int, default=2, show_default=True, help="Fields K in the planner's ensemble.")
@@ -369,6 +369,7 @@ def export(run_dir, out):
 def bench(suite, out, profile, workers, seeds, planners, scenes, overrides, report_only, quiet):
     """Run a benchmark SUITE (TOML): scenes x planners x seeds; write tables and plots."""
     from .bench import parse_overrides, run_suite
+    from .planners.base import folder_name
 
     split = lambda s: [x.strip() for x in s.split(",") if x.strip()] if s else None  # noqa: E731
     try:
@@ -378,7 +379,7 @@ def bench(suite, out, profile, workers, seeds, planners, scenes, overrides, repo
     if not out:
         # Each variant of a suite gets a folder of its own: a folder's finished
         # runs are kept only when their settings match.
-        tag = "".join("-" + re.sub(r"[^A-Za-z0-9._=-]", "_", o) for o in overrides)
+        tag = "".join("-" + folder_name(o) for o in overrides)
         out = Path("bench") / f"{Path(suite).stem}-{profile}{tag}"
     out = Path(out)
     summary = run_suite(suite, out, profile, workers, seed_list, split(planners), split(scenes),

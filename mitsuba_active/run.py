@@ -34,6 +34,7 @@ from .groundtruth import View
 from .imageio_utils import atomic_write, colorize, srgb_to_linear, write_exr, write_png
 from .metrics import distance_error, psnr, ssim
 from .planners import PlanningState, make_planner
+from .planners.base import is_planner_file, planner_digest, planner_folder, planner_label, resolve_reference
 
 RUN_FORMAT = 1
 
@@ -44,7 +45,9 @@ class RunConfig:
 
     Attributes:
         scene: scene XML, transforms.json or dataset folder.
-        planner: registered planner name; ``planner_options`` its settings.
+        planner: registered planner name, or a planner of the user's own as
+            ``FILE.py:CLASS`` (the file's path is made absolute) or ``MODULE:CLASS``;
+            ``planner_options`` its settings.
         budget: views captured in total (initial views included).
         initial_views: random views captured before planning starts.
         ensemble: number of fields K in the planner's ensemble.
@@ -87,6 +90,8 @@ class RunConfig:
     def __post_init__(self):
         if isinstance(self.scene, os.PathLike):  # run.json holds it as text
             self.scene = os.fspath(self.scene)
+        if isinstance(self.planner, str):  # a planner file is the same file from any folder
+            self.planner = resolve_reference(self.planner)
 
     #: Settings that are whole numbers, and those that are numbers (None: unset).
     WHOLE = ("budget", "initial_views", "ensemble", "batch", "seed", "resolution", "candidates", "heldout",
@@ -210,19 +215,27 @@ def config_differences(recorded, current: dict, compare_scene: bool = True) -> l
     Scene paths compare as resolved paths, so that a relative and an absolute
     path to one scene match. Callers that check the scene's content hash pass
     ``compare_scene=False``: the same scene may then be named by any path (a
-    folder run from elsewhere, or moved).
+    folder run from elsewhere, or moved). Planner files compare by their
+    :func:`~mitsuba_active.planners.planner_label`, for the same reason:
+    callers compare their content (:func:`~mitsuba_active.planners.base.planner_digest`).
     """
     if not isinstance(recorded, dict):
         return ["config: missing"]
+    current_planner = current.get("planner")
 
     def normal(config):
         config = json.loads(json.dumps(config, default=_json_default))  # tuples as lists, numpy as numbers
         if isinstance(config.get("eval_views"), list):  # the same counts in any order
             config["eval_views"] = sorted(set(config["eval_views"]))
+        name = config.get("planner")
+        if is_planner_file(name):
+            config["planner"] = planner_label(name)
+            if is_planner_file(current_planner) and config["planner"] == planner_label(current_planner):
+                name = current_planner  # the file as it is now, not where the record found it
         # The fields a planner actually trains: none for even (any --ensemble
         # then is the same run), one for fisher.
         try:
-            planner = make_planner(config.get("planner"), **dict(config.get("planner_options") or {}))
+            planner = make_planner(name, **dict(config.get("planner_options") or {}))
         except (UserError, TypeError, ValueError):  # not a record of this tool's planners
             planner = None
         if planner is not None and is_whole(config.get("ensemble")):
@@ -369,6 +382,7 @@ class Run:
         self.source, self.cfg, self.out = source, cfg, Path(out_dir)
         self.progress, self.log = progress, log
         self.planner = make_planner(cfg.planner, **cfg.planner_options)
+        self.planner_digest = planner_digest(cfg.planner)  # of the code just loaded
         self.planner.check_ensemble_size(cfg.ensemble)
         self.env = ActiveViewEnv(source, cfg.budget)
         self.rng = planner_rng(cfg.seed)
@@ -398,6 +412,9 @@ class Run:
             changed = config_differences(rec.get("config"), self._config_dict(), compare_scene=not by_content)
             if changed:
                 raise UserError(other_settings(self.out, changed, "choose another --out folder"))
+            if rec.get("planner_digest") != self.planner_digest:
+                raise UserError(f"{self.out} holds a run made with another version of the planner's code "
+                                f"({planner_label(self.cfg.planner)}); choose another --out folder")
             if ((by_content and rec["content_hash"] != self._content_hash())
                     or rec.get("candidates") != [c.to_dict() for c in self.source.candidates]
                     or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):
@@ -406,7 +423,8 @@ class Run:
             self.record = rec
             return True
         self.record = {"format": RUN_FORMAT, "config": self._config_dict(),
-                       "planner_options": self.planner.options(), "scene": self.source.name,
+                       "planner_options": self.planner.options(), "planner_digest": self.planner_digest,
+                       "scene": self.source.name,
                        "candidates": [c.to_dict() for c in self.source.candidates],
                        "heldout": [c.to_dict() for c in self.source.heldout],
                        "content_hash": self._content_hash(),
@@ -500,7 +518,7 @@ class Run:
             state.ensemble = self.ensemble
         self._save_record()
 
-        bar = tqdm(total=cfg.budget, initial=len(self.env.captured), desc=f"{cfg.planner}", unit="view",
+        bar = tqdm(total=cfg.budget, initial=len(self.env.captured), desc=planner_label(cfg.planner), unit="view",
                    disable=not self.progress)
         while True:
             self._evaluate_due()
@@ -551,7 +569,8 @@ class Run:
         from .report import contact_sheet, plot_metrics, plot_views
 
         write_metrics_csv(self.out / "metrics.csv", self.record["metrics"])
-        plot_metrics({self.cfg.planner: self.record["metrics"]}, self.out, title=self.source.name)
+        label = planner_label(self.cfg.planner)
+        plot_metrics({label: self.record["metrics"]}, self.out, title=self.source.name)
         contact_sheet([v.rgb for v in self.env.views], [f"#{n} cand {i}" for n, i in enumerate(self.env.captured)],
                       self.out / "chosen_views.png")
         scene = getattr(self.source, "scene", None)
@@ -560,7 +579,7 @@ class Run:
         plot_views(self.source.candidates, self.env.captured, self.source.heldout, self.source.bbox_min,
                    self.source.bbox_max, self.out / "camera_views.png", up=up,
                    initial=min(self.cfg.initial_views, len(self.env.captured)),
-                   title=f"{self.source.name}: {self.cfg.planner}, {len(self.env.captured)} views")
+                   title=f"{self.source.name}: {label}, {len(self.env.captured)} views")
         preds = getattr(self, "_last_preds", None)
         if preds is None:  # resumed after the last evaluation: score again to get images
             _, preds = evaluate(self.source, self.env.views, self.cfg)
@@ -606,4 +625,4 @@ def default_out_dir(scene_path, planner: str, seed: int) -> Path:
     stem = path.stem if path.suffix else path.name
     if path.suffix == ".json":  # transforms.json / transforms_train.json: name the dataset folder
         stem = path.resolve().parent.name
-    return Path("runs") / f"{stem}-{planner}-seed{seed}"
+    return Path("runs") / f"{stem}-{planner_folder(planner)}-seed{seed}"

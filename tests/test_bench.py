@@ -425,3 +425,37 @@ def test_a_changed_suite_is_refused_before_anything_is_replaced(tiny_suite, tmp_
     # Undone, the suite is the same again: its finished run counts.
     tiny_suite.write_text(text)
     assert len(run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False)["cells"]) == 1
+
+
+def test_a_suite_runs_a_planner_file_beside_it_in_worker_processes(tiny_suite, tmp_path, monkeypatch):
+    from mitsuba_active.bench import load_suite, plan_jobs, run_job
+    from tests.test_planners import PLANNER_FILE
+
+    (tmp_path / "mine.py").write_text(PLANNER_FILE)
+    tiny_suite.write_text(tiny_suite.read_text().replace('["even", "rfe"]', '["even", "mine.py:Last"]'))
+    monkeypatch.chdir(tmp_path.parent)  # the file is found beside the suite, not in the current folder
+    out = tmp_path / "out"
+    summary = run_suite(tiny_suite, out, "quick", workers=2, scenes=["ball"], planners=["even", "mine.py:Last"],
+                        progress=False)
+    assert {c["planner"] for c in summary["cells"]} == {"even", "mine.py:Last"}
+    rec = json.loads((out / "runs" / "ball" / "mine.py_Last-seed0" / "run.json").read_text())
+    assert rec["finished"] and rec["planner_digest"] is not None
+    assert "| mine.py:Last |" in (out / "report" / "table_psnr.md").read_text()
+    # Runs made with other code are refused, as runs of an edited scene are...
+    (tmp_path / "mine.py").write_text(PLANNER_FILE + "\n# edited\n")
+    with pytest.raises(UserError, match="holds runs made with another version of the planner's code \\(mine.py:Last"):
+        run_suite(tiny_suite, out, "quick", workers=1, scenes=["ball"], progress=False)
+    # ... and a suite stops when the code changes while it runs.
+    jobs = plan_jobs(load_suite(tiny_suite), tmp_path / "out2", "quick", planners=["mine.py:Last"], scenes=["ball"])
+    (tmp_path / "mine.py").write_text(PLANNER_FILE)
+    with pytest.raises(UserError, match="changed while the suite ran"):
+        run_job(jobs[0])
+    assert not (tmp_path / "out2" / "runs").exists()
+    # Two files whose names make one folder name would share tables and folders.
+    (tmp_path / "my planner.py").write_text(PLANNER_FILE)
+    (tmp_path / "my_planner.py").write_text(PLANNER_FILE)
+    both = '"my planner.py:Last", "my_planner.py:Last"]'
+    tiny_suite.write_text(tiny_suite.read_text().replace('"mine.py:Last"]', both))
+    with pytest.raises(UserError, match="my planner.py:Last and my_planner.py:Last would share run folders"):
+        run_suite(tiny_suite, tmp_path / "out3", "quick", scenes=["ball"], progress=False)
+    assert not (tmp_path / "out3").exists()

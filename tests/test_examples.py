@@ -23,6 +23,34 @@ def test_custom_scene_example(tmp_path):
 
 
 def test_compare_planners_example(tmp_path):
-    out = _run("compare_planners.py", "--out", str(tmp_path / "p"))
-    assert "rfe" in out and "even" in out
+    mine = f"{REPO / 'examples' / 'custom_planner.py'}:NoveltyWeightedVariance"
+    out = _run("compare_planners.py", "--out", str(tmp_path / "p"), "--planners", "rfe", "even", mine)
+    assert "\nrfe " in out and "\neven " in out and "\ncustom_planner.py:NoveltyWeightedVariance 2v:" in out
     assert (tmp_path / "p" / "psnr.png").is_file()
+    assert json.loads((tmp_path / "p" / "custom_planner.py_NoveltyWeightedVariance" / "run.json").read_text())[
+        "finished"]
+
+
+def test_the_example_planner_weighs_variance_by_novelty():
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from mitsuba_active.cameras import fibonacci_sphere
+    from mitsuba_active.planners import PlanningState, make_planner
+
+    cands = fibonacci_sphere(12, [0, 0, 0], 2.0, 40.0, 8, 8)
+    variance = np.linspace(1.0, 2.0, 12)  # the last candidate is the most uncertain
+
+    def predict(o, d):  # each candidate's 4 rays share its variance
+        return {"rgb_var": np.repeat(variance, 4)[:, None].repeat(3, 1) / 12.0}
+
+    state = PlanningState(cands, [0], ensemble=SimpleNamespace(n_members=2, predict=predict),
+                          candidate_rays=(np.zeros((12, 4, 3)), np.zeros((12, 4, 3))))
+    ref = f"{REPO / 'examples' / 'custom_planner.py'}:NoveltyWeightedVariance"
+    picks, scores = make_planner(ref, power=0.0).select(state, 1)
+    assert picks == [11] and np.allclose(scores, variance)  # RFE's sum of variances
+    forward = np.stack([c.forward for c in cands])
+    opposite = int(np.argmin(forward @ forward[0]))
+    picks, _ = make_planner(ref, power=50.0).select(state, 1)
+    assert picks == [opposite] != [11]  # the direction farthest from the captured one

@@ -108,3 +108,132 @@ def test_a_batch_larger_than_the_views_left_names_both_counts(name):
 def test_scoring_planners_say_what_the_state_lacks(name):
     with pytest.raises(UserError, match=f"the {name} planner .* has no ensemble and no candidate_rays"):
         make_planner(name).select(PlanningState(CANDS, [0]), 1)
+
+
+PLANNER_FILE = '''
+import numpy as np
+from mitsuba_active.planners import Planner, greedy_top, unseen
+
+
+class Last(Planner):
+    """Picks the unseen candidates with the highest indices."""
+
+    def __init__(self, offset: int = 0):
+        if offset < 0:
+            raise ValueError("offset must be >= 0")
+        self.offset = offset
+
+    def options(self):
+        return {"offset": self.offset}
+
+    def select(self, state, batch):
+        scores = np.arange(len(state.candidates), dtype=float) + self.offset
+        return greedy_top(scores, unseen(state), batch), scores
+
+
+def helper():
+    pass
+'''
+
+
+def test_a_planner_of_ones_own_by_reference(tmp_path, monkeypatch):
+    from mitsuba_active.planners import planner_label
+    from mitsuba_active.planners.base import planner_digest, resolve_reference
+
+    (tmp_path / "mine.py").write_text(PLANNER_FILE)
+    monkeypatch.chdir(tmp_path)
+    planner = make_planner("mine.py:Last", offset=2)
+    assert planner.options() == {"offset": 2} and planner.name == "mine.py:Last"
+    assert planner.select(PlanningState(CANDS, [11]), 2)[0] == [10, 9]
+    ref = resolve_reference("mine.py:Last")
+    assert ref == f"{tmp_path / 'mine.py'}:Last" and planner_label(ref) == "mine.py:Last"
+    assert resolve_reference("rfe") == "rfe" and resolve_reference("pkg.mod:Cls") == "pkg.mod:Cls"
+    assert planner_digest(ref) == __import__("hashlib").sha256(PLANNER_FILE.encode()).hexdigest()
+    assert planner_digest("rfe") is None
+    with pytest.raises(UserError, match="bad option for planner 'mine.py:Last': offset must be >= 0"):
+        make_planner("mine.py:Last", offset=-1)
+    with pytest.raises(UserError, match="unknown option offs \\(it takes offset\\)"):
+        make_planner("mine.py:Last", offs=1)
+
+
+@pytest.mark.parametrize("text, ref, message", [
+    (PLANNER_FILE, "mine.py:First", "mine.py has no class 'First'; it defines Last"),
+    (PLANNER_FILE, "mine.py:helper", "mine.py:helper is not a planner: a planner is a subclass of"),
+    (PLANNER_FILE, "other.py:Last", "planner file not found: .*other.py"),
+    ("import numpy\n\nx = 1 / 0\n", "mine.py:Last", "mine.py: ZeroDivisionError: division by zero \\(line 3\\)"),
+    ("def f(:\n", "mine.py:Last", "mine.py: SyntaxError: invalid syntax \\(line 1\\)$"),
+    (PLANNER_FILE, "no_such_module_here:Last", "no module named 'no_such_module_here' for a planner"),
+    ("raise ValueError('first\\nsecond')\n", "mine.py:Last", "ValueError: first second \\(line 1\\)"),
+    ("import helper_with_a_typo\n", "mine.py:Last", "ModuleNotFoundError: .*helper_with_a_typo.* \\(line 1\\)"),
+    ("import broken_helper\n", "mine.py:Last",
+     "mine.py: SyntaxError: '\\(' was never closed \\(broken_helper.py, line 3\\) \\(line 1\\)"),
+    ("from mitsuba_active.planners import Planner\nclass Last(Planner):\n    def choose(self, state, batch):\n"
+     "        return [0], None\n", "mine.py:Last", "mine.py:Last has no select\\(state, batch\\) method"),
+])
+def test_a_bad_planner_reference_is_one_line(tmp_path, monkeypatch, text, ref, message):
+    (tmp_path / "mine.py").write_text(text)
+    (tmp_path / "broken_helper.py").write_text("\n\nx = (\n")  # its own error is not the planner file's line 3
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(UserError, match=message) as info:
+        make_planner(ref)
+    assert "\n" not in str(info.value)
+
+
+def test_planner_options_may_be_keyword_only(tmp_path):
+    (tmp_path / "kw.py").write_text(
+        "from mitsuba_active.planners import Planner\n"
+        "class K(Planner):\n"
+        "    def __init__(self, *, power=1.0):\n"
+        "        if power < 0:\n"
+        "            raise ValueError('power must be >= 0')\n"
+        "    def select(self, state, batch):\n"
+        "        return [0], None\n")
+    with pytest.raises(UserError, match="'kw.py:K': power must be >= 0 \\(it takes power\\)"):
+        make_planner(f"{tmp_path / 'kw.py'}:K", power=-1)
+    with pytest.raises(UserError, match="unknown option pow \\(it takes power\\)"):
+        make_planner(f"{tmp_path / 'kw.py'}:K", pow=1)
+    (tmp_path / "any.py").write_text(
+        "from mitsuba_active.planners import Planner\n"
+        "class A(Planner):\n"
+        "    def __init__(self, **options):\n"
+        "        raise ValueError(f'no {sorted(options)}')\n"
+        "    def select(self, state, batch):\n"
+        "        return [0], None\n")
+    with pytest.raises(UserError, match="'any.py:A': no \\['x'\\]$"):  # it takes any name: its own message
+        make_planner(f"{tmp_path / 'any.py'}:A", x=1)
+
+
+def test_a_planner_module_and_the_files_beside_a_planner_import(tmp_path, monkeypatch):
+    import hashlib
+
+    from mitsuba_active.planners.base import planner_digest
+
+    (tmp_path / "helper_beside.py").write_text(PLANNER_FILE)
+    (tmp_path / "uses_helper.py").write_text("from helper_beside import Last as Beside\n")
+    planner = make_planner(f"{tmp_path / 'uses_helper.py'}:Beside")  # not the current folder's
+    assert planner.select(PlanningState(CANDS, []), 1)[0] == [11]
+    (tmp_path / "planner_module_here.py").write_text(PLANNER_FILE)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert make_planner("planner_module_here:Last", offset=3).options() == {"offset": 3}
+    assert planner_digest("planner_module_here:Last") == hashlib.sha256(PLANNER_FILE.encode()).hexdigest()
+
+
+def test_registering_a_planner_by_name():
+    from mitsuba_active.planners import Planner, register
+    from mitsuba_active.planners.base import REGISTRY
+
+    class Mine(Planner):
+        name = "mine_for_a_test"
+
+        def select(self, state, batch):
+            return [1], None
+
+    try:
+        register(Mine)
+        assert make_planner("mine_for_a_test").select(PlanningState(CANDS, []), 1) == ([1], None)
+    finally:
+        REGISTRY.pop("mine_for_a_test", None)
+    for name, message in (("rfe", "one of mitsuba-active's planners"), ("a:b", "without ':'")):
+        with pytest.raises(UserError, match=message):
+            register(type("Other", (Mine,), {"name": name}))
+    assert REGISTRY["rfe"].__name__ == "RFEPlanner"

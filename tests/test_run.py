@@ -290,3 +290,25 @@ def test_a_config_that_does_not_describe_its_source_is_refused(source, sphere_xm
     assert isinstance(cfg.scene, str)
     own = Run(cfg.open_source(cache_dir=False), cfg, tmp_path / "r").source
     assert [c.to_dict() for c in own.candidates] == [c.to_dict() for c in source.candidates]
+
+
+def test_plan_runs_a_planner_of_ones_own(spot_xml, tmp_path, monkeypatch):
+    from tests.test_planners import PLANNER_FILE
+
+    (tmp_path / "mine.py").write_text(PLANNER_FILE)
+    monkeypatch.chdir(tmp_path)
+    args = ["plan", str(spot_xml), "--planner", "mine.py:Last", "--planner-option", "offset=1", "--budget", "3",
+            "--candidates", "6", "--heldout", "2", "--resolution", "16", "--spp", "2", "--eval-views", "3",
+            "--eval-steps", "20", "--quiet"]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0, res.output
+    out = tmp_path / "runs" / "spot-mine.py_Last-seed0"
+    rec = json.loads((out / "run.json").read_text())
+    assert rec["finished"] and rec["captured"][2] == max(set(range(6)) - set(rec["captured"][:2]))
+    assert rec["config"]["planner"] == f"{tmp_path / 'mine.py'}:Last" and rec["planner_options"] == {"offset": 1}
+    # Edited code is another planner: its run is not resumed or counted as done.
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0 and "already complete" in res.output, res.output
+    (tmp_path / "mine.py").write_text(PLANNER_FILE.replace("self.offset\n", "self.offset + 1\n"))
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 2 and "another version of the planner's code (mine.py:Last)" in res.output, res.output

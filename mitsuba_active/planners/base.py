@@ -1,9 +1,23 @@
-"""The planner interface and the registry by name."""
+"""The planner interface, the registry by name, and planners of the user's own.
+
+A planner is named by its registered name (``rfe``) or by a reference to a
+:class:`Planner` subclass of the user's own: ``path/to/file.py:ClassName``
+or ``package.module:ClassName``. References work wherever a name does
+(``plan --planner``, suites, :class:`~mitsuba_active.run.RunConfig`), also in
+``bench``'s worker processes, which load the class by its reference.
+"""
 
 from __future__ import annotations
 
+import hashlib
+import importlib
+import importlib.util
 import inspect
+import re
+import sys
+import traceback
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -106,21 +120,175 @@ REGISTRY: dict[str, type] = {}
 
 
 def register(cls):
-    """Class decorator: make a planner available by its ``name``."""
+    """Class decorator: make a planner available by its ``name`` (in this process)."""
+    if not isinstance(cls.name, str) or not cls.name or ":" in cls.name:
+        raise UserError(f"a registered planner's name is a word without ':', got {cls.name!r}")
+    taken = REGISTRY.get(cls.name)
+    if taken is not None and taken.__module__.startswith(__name__.rpartition(".")[0] + ".") and taken is not cls:
+        raise UserError(f"'{cls.name}' is the name of one of mitsuba-active's planners; "
+                        f"give {cls.__name__} another name")
     REGISTRY[cls.name] = cls
     return cls
 
 
-def make_planner(name: str, **options) -> Planner:
-    """Instantiate a registered planner; unknown names and options raise UserError."""
-    if name not in REGISTRY:
-        raise UserError(f"unknown planner '{name}'; choose one of {', '.join(sorted(REGISTRY))}")
+def _parse(name: str) -> tuple[str | None, str]:
+    """``(where, class name)`` of a reference: ``where`` is a ``.py`` path or a
+    dotted module; ``(None, name)`` for a registered name."""
+    where, sep, cls = name.rpartition(":")
+    return (where, cls) if sep else (None, name)
+
+
+def _is_file(where: str | None) -> bool:
+    return where is not None and where.endswith(".py")
+
+
+def resolve_reference(name: str, folder=".") -> str:
+    """A planner name with the file of a ``FILE.py:CLASS`` reference made
+    absolute (relative to ``folder``), so that it names the same file from
+    anywhere; registered names and ``MODULE:CLASS`` references are returned as they are."""
+    where, cls = _parse(name)
+    return f"{(Path(folder) / where).resolve()}:{cls}" if _is_file(where) else name
+
+
+def planner_label(name: str) -> str:
+    """A short name of a planner for tables, plots and messages: a registered
+    name as it is, ``FILE.py:CLASS`` as ``file.py:CLASS`` (without its folder)."""
+    where, cls = _parse(name)
+    return f"{Path(where).name}:{cls}" if _is_file(where) else name
+
+
+def folder_name(text: str) -> str:
+    """``text`` with each character that does not belong in a folder name replaced by ``_``."""
+    return re.sub(r"[^A-Za-z0-9._=-]", "_", text)
+
+
+def planner_folder(name: str) -> str:
+    """The part of a run folder's name that names its planner."""
+    return folder_name(planner_label(name))
+
+
+def is_planner_file(name) -> bool:
+    """Whether ``name`` is a ``FILE.py:CLASS`` reference."""
+    return isinstance(name, str) and _is_file(_parse(name)[0])
+
+
+#: Code of the user's own planners as loaded: absolute path of a planner file,
+#: or a module's name -> (module, sha256 of its file's content then).
+_LOADED: dict[str, tuple] = {}
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _failure(where: str, exc: Exception, path: str | None = None) -> UserError:
+    """One line for an exception raised while loading a planner's code, with
+    the line of the planner's file where it was raised."""
+    if isinstance(exc, SyntaxError) and exc.filename == path:  # its str() names the file and line already
+        message, line = exc.msg, exc.lineno
+    else:
+        frames = [f for f in traceback.extract_tb(exc.__traceback__) if f.filename == path]
+        message, line = str(exc), frames[-1].lineno if frames else None
+    at = f" (line {line})" if line else ""
+    return UserError(f"cannot load the planner {where}: {type(exc).__name__}: {_one_line(message)}{at}")
+
+
+def _load_file(path: str):
+    """The module of a planner file, loaded again whenever the file has changed
+    (in a long session, the code that runs is always the file's). As for a
+    script, the file's folder is on ``sys.path``, so modules beside it import."""
+    file = Path(path)
+    if not file.is_file():
+        raise UserError(f"planner file not found: {file}")
+    digest = hashlib.sha256(file.read_bytes()).hexdigest()
+    if path in _LOADED and _LOADED[path][1] == digest:
+        return _LOADED[path][0]
+    if str(file.parent) not in sys.path:
+        sys.path.append(str(file.parent))
+    name = "mitsuba_active_user_planner_" + hashlib.sha256(path.encode()).hexdigest()[:12]
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module  # dataclasses and pickling look classes up there
     try:
-        return REGISTRY[name](**options)
+        spec.loader.exec_module(module)
+    except Exception as exc:  # the planner's own code: a bug there is named with its line
+        sys.modules.pop(name, None)
+        raise _failure(f"file {file}", exc, path) from None
+    _LOADED[path] = (module, digest)
+    return module
+
+
+def _load_module(name: str):
+    """An importable module holding a planner (imported once, as Python does)."""
+    if name in _LOADED:
+        return _LOADED[name][0]
+    try:
+        module = importlib.import_module(name)
+    except ModuleNotFoundError as exc:
+        if exc.name is not None and (name == exc.name or name.startswith(exc.name + ".")):
+            raise UserError(f"no module named '{name}' for a planner (a planner in a file is named "
+                            f"FILE.py:CLASS)") from None
+        raise _failure(f"module {name}", exc) from None
+    except Exception as exc:
+        raise _failure(f"module {name}", exc) from None
+    path = getattr(module, "__file__", None)
+    _LOADED[name] = (module, hashlib.sha256(Path(path).read_bytes()).hexdigest() if path else None)
+    return module
+
+
+def planner_class(name: str) -> type:
+    """The :class:`Planner` subclass that a registered name or a reference names."""
+    if not isinstance(name, str) or not name:
+        raise UserError(f"a planner is named by a string (a registered name or FILE.py:CLASS), got {name!r}")
+    where, cls_name = _parse(name)
+    if where is None:
+        if name not in REGISTRY:
+            raise UserError(f"unknown planner '{name}'; choose one of {', '.join(sorted(REGISTRY))}, "
+                            "or name a planner of your own as FILE.py:CLASS")
+        return REGISTRY[name]
+    module = _load_file(str(Path(where).resolve())) if _is_file(where) else _load_module(where)
+    cls = getattr(module, cls_name, None)
+    if cls is None:
+        found = [k for k, v in vars(module).items()
+                 if inspect.isclass(v) and issubclass(v, Planner) and v.__module__ == module.__name__]
+        have = f"; it defines {', '.join(found)}" if found else "; it defines no Planner subclass"
+        raise UserError(f"{where} has no class '{cls_name}'{have}")
+    if not (inspect.isclass(cls) and issubclass(cls, Planner)):
+        raise UserError(f"{name} is not a planner: a planner is a subclass of mitsuba_active.planners.Planner")
+    if cls.select is Planner.select:  # found now, not after the ground truth and the first training
+        raise UserError(f"{planner_label(name)} has no select(state, batch) method")
+    return cls
+
+
+def planner_digest(name: str) -> str | None:
+    """SHA-256 of the file a planner of the user's own comes from, as its code
+    was loaded (only that file: not the modules it imports); None for the
+    package's planners. Recorded in run.json: a run is not resumed, nor
+    counted in a suite, with other code."""
+    where = _parse(name)[0] if isinstance(name, str) else None
+    if where is None:
+        return None
+    planner_class(name)  # loads the code (a file again, if it changed)
+    return _LOADED[str(Path(where).resolve()) if _is_file(where) else where][1]
+
+
+def make_planner(name: str, **options) -> Planner:
+    """Instantiate a planner by registered name or reference; unknown names and options raise UserError."""
+    cls = planner_class(name)
+    try:
+        planner = cls(**options)
     except (TypeError, ValueError) as exc:
-        params = inspect.signature(REGISTRY[name].__init__).parameters.values()
-        accepted = [q.name for q in params if q.name != "self" and q.kind == q.POSITIONAL_OR_KEYWORD]
-        known = f" (it takes {', '.join(accepted)})" if accepted else " (it takes none)"
-        unknown = set(options) - set(accepted)
-        why = f"unknown option {', '.join(sorted(unknown))}" if unknown else str(exc)
-        raise UserError(f"bad option for planner '{name}': {why}{known}") from None
+        # object.__init__'s (*args, **kwargs) is no option: a planner without __init__ takes none.
+        params = [] if cls.__init__ is object.__init__ else inspect.signature(cls.__init__).parameters.values()
+        if any(q.kind == q.VAR_KEYWORD for q in params):
+            unknown, known = set(), ""
+        else:
+            accepted = [q.name for q in params if q.name != "self" and q.kind in (q.POSITIONAL_OR_KEYWORD,
+                                                                                 q.KEYWORD_ONLY)]
+            unknown = set(options) - set(accepted)
+            known = f" (it takes {', '.join(accepted)})" if accepted else " (it takes none)"
+        why = f"unknown option {', '.join(sorted(unknown))}" if unknown else _one_line(exc)
+        raise UserError(f"bad option for planner '{planner_label(name)}': {why}{known}") from None
+    if cls.name == Planner.name:  # messages name the planner ("the ... planner needs ...")
+        planner.name = planner_label(name)
+    return planner

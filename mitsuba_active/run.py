@@ -526,10 +526,10 @@ class Run:
                 break
             b = min(cfg.batch, cfg.budget - len(self.env.captured))
             t0 = time.perf_counter()
-            picks, scores = self.planner.select(state, b)
+            picks, scores = self.planner.checked_select(state, b)
             t_select = time.perf_counter() - t0
             for i in picks:
-                self.env.step(int(i))
+                self.env.step(i)
                 self._save_view(len(self.env.captured) - 1, self.env.views[-1])
             t1 = time.perf_counter()
             if self.ensemble is not None:

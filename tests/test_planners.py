@@ -237,3 +237,26 @@ def test_registering_a_planner_by_name():
         with pytest.raises(UserError, match=message):
             register(type("Other", (Mine,), {"name": name}))
     assert REGISTRY["rfe"].__name__ == "RFEPlanner"
+
+
+@pytest.mark.parametrize("answer, message", [
+    (([12], None), "picked \\[12\\]"),
+    (([0, 1], None), "picked \\[0, 1\\]"),
+    (([1.0], None), "picked \\[1.0\\]"),
+    ([3], "answered list"),
+    (([3], np.zeros(5)), "gave scores of shape \\(5,\\)"),
+    (([3], [[1, 2], [3]]), "answered"),
+])
+def test_a_planners_answer_is_checked(answer, message):
+    from mitsuba_active.planners import Planner
+
+    class Odd(Planner):
+        name = "odd"
+
+        def select(self, state, batch):
+            return answer
+
+    with pytest.raises(UserError, match=f"the odd planner {message}.*must return 1 candidate indices in \\[0, 12\\)"):
+        Odd().checked_select(PlanningState(CANDS, []), 1)
+    picks, scores = make_planner("coverage").checked_select(PlanningState(CANDS, [0]), 2)
+    assert len(picks) == 2 and all(type(i) is int for i in picks) and scores.dtype == np.float64

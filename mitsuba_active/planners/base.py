@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..checks import is_whole
 from ..errors import UserError
 
 
@@ -79,6 +80,28 @@ class Planner:
     def select(self, state: PlanningState, batch: int) -> tuple[list[int], np.ndarray | None]:
         """Return ``batch`` candidate indices and the per-candidate scores (C,) they were chosen by, or None."""
         raise NotImplementedError
+
+    def checked_select(self, state: PlanningState, batch: int) -> tuple[list[int], np.ndarray | None]:
+        """:meth:`select`, with its answer checked (a planner of the user's own
+        may answer anything): UserError unless it is ``batch`` candidate indices and
+        C scores or None. Returns the picks as ints and the scores as float64."""
+        answer = self.select(state, batch)
+        n = len(state.candidates)
+        expected = f"select(state, batch) must return {batch} candidate indices in [0, {n}) and {n} scores or None"
+        if not (isinstance(answer, tuple) and len(answer) == 2):
+            raise UserError(f"the {self.name} planner answered {type(answer).__name__}: {expected}")
+        picks, scores = answer
+        try:
+            indices = list(np.asarray(picks).reshape(-1))
+            scores = None if scores is None else np.asarray(scores, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise UserError(f"the {self.name} planner answered ({_one_line(picks)}, {_one_line(scores)}): "
+                            f"{expected}") from None
+        if len(indices) != batch or not all(is_whole(i) and 0 <= i < n for i in indices):
+            raise UserError(f"the {self.name} planner picked {_one_line(picks)}: {expected}")
+        if scores is not None and scores.shape != (n,):
+            raise UserError(f"the {self.name} planner gave scores of shape {scores.shape}: {expected}")
+        return [int(i) for i in indices], scores
 
     def options(self) -> dict:
         """The planner's settings, recorded in run.json."""

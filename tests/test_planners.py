@@ -137,6 +137,8 @@ def helper():
 
 
 def test_a_planner_of_ones_own_by_reference(tmp_path, monkeypatch):
+    import hashlib
+
     from mitsuba_active.planners import planner_label
     from mitsuba_active.planners.base import planner_digest, resolve_reference
 
@@ -148,7 +150,7 @@ def test_a_planner_of_ones_own_by_reference(tmp_path, monkeypatch):
     ref = resolve_reference("mine.py:Last")
     assert ref == f"{tmp_path / 'mine.py'}:Last" and planner_label(ref) == "mine.py:Last"
     assert resolve_reference("rfe") == "rfe" and resolve_reference("pkg.mod:Cls") == "pkg.mod:Cls"
-    assert planner_digest(ref) == __import__("hashlib").sha256(PLANNER_FILE.encode()).hexdigest()
+    assert planner_digest(ref) == hashlib.sha256(PLANNER_FILE.encode()).hexdigest()
     assert planner_digest("rfe") is None
     with pytest.raises(UserError, match="bad option for planner 'mine.py:Last': offset must be >= 0"):
         make_planner("mine.py:Last", offset=-1)

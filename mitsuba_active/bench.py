@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .checks import setting_value
 from .errors import UserError
 from .imageio_utils import atomic_write
 from .metrics import iqm, standard_error
@@ -172,10 +173,7 @@ def parse_overrides(items) -> dict:
         key = key.strip()
         if not sep or not key:
             raise UserError(f"--set takes KEY=VALUE, got '{item}'")
-        try:
-            value = tomllib.loads(f"v = {text.strip()}")["v"]
-        except tomllib.TOMLDecodeError:
-            value = text.strip()
+        value = setting_value(text)
         table, dot, name = key.partition(".")
         if key in JOB_KEYS:
             raise UserError(f"--set: '{key}' names the runs; choose them with --{key}s")
@@ -320,8 +318,10 @@ def _refuse_other_runs(jobs: list[Job]) -> None:
         if changed:
             raise UserError(other_settings(job.out, changed, "use another --out for this variant of the suite"))
         if rec.get("planner_digest") != job.planner_digest:
-            raise UserError(f"{Path(job.out).parent.parent.parent} holds runs made with another version of the "
-                            f"planner's code ({job.planner}); use another --out, or undo the change")
+            suite_dir, folder = Path(job.out).parent.parent.parent, Path(job.out).name.rpartition("-seed")[0]
+            raise UserError(f"{suite_dir} holds runs made with another version of the planner's code "
+                            f"({job.planner}); use another --out, undo the change, or remove its runs "
+                            f"({suite_dir / 'runs' / '*' / folder}-seed*)")
 
 
 def run_job(job: Job, threads: int | None = None) -> dict:
@@ -425,14 +425,20 @@ def _stop_pool(pool, patience: float = 10.0) -> None:
 
 def _init_worker(parent: int):
     """Ctrl-C is the parent's to handle: it stops the workers (SIGTERM), and a
-    stopped worker exits through its ``finally`` blocks, so no temporary file
-    is left. A worker whose parent is gone (killed outright) stops itself the
-    same way. tqdm's lock is a thread lock here: its default, a
-    multiprocessing lock, would be reported as leaked when a worker stops."""
+    worker stopped in a job exits through its ``finally`` blocks, so no
+    temporary file is left (an idle one exits at once). A worker whose parent
+    is gone (killed outright) stops itself the same way. tqdm's lock is a
+    thread lock here: its default, a multiprocessing lock, would be reported
+    as leaked when a worker stops."""
     from tqdm import tqdm
 
     def stop(signum, frame):
         signal.signal(signal.SIGTERM, signal.SIG_IGN)  # one stop; its clean-up is not cut short
+        if not _worker_busy:
+            # Idle, or already exiting (a failed job ends the pool): nothing to
+            # clean up, and an exception raised inside the interpreter's exit
+            # handlers would only be printed as a traceback.
+            os._exit(1)
         raise SystemExit(1)
 
     def watch_parent():
@@ -446,8 +452,17 @@ def _init_worker(parent: int):
     tqdm.set_lock(threading.RLock())
 
 
+#: Whether this worker process is running a job (see :func:`_init_worker`).
+_worker_busy = False
+
+
 def _run_job_star(args):
-    return run_job(*args)
+    global _worker_busy
+    _worker_busy = True
+    try:
+        return run_job(*args)
+    finally:
+        _worker_busy = False
 
 
 # ---------------------------------------------------------------------------

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import tomllib
 
 
 def is_whole(value) -> bool:
@@ -26,3 +27,18 @@ def is_number(value, finite: bool = False) -> bool:
         return math.isfinite(float(value))
     except OverflowError:
         return False
+
+
+def setting_value(text: str):
+    """A setting given as text on the command line, read as a TOML value
+    (``4``, ``0.02``, ``[5, 10]``, ``true``) or a number Python reads
+    (``.5``); any other text is a string (``interior``, ``log``)."""
+    text = text.strip()
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        return text

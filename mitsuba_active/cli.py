@@ -172,20 +172,15 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
 
 
 def _parse_options(items) -> dict:
-    """``NAME=VALUE`` strings to a dict; values become int, float or str."""
+    """``NAME=VALUE`` strings to a dict; values are read as ``bench --set`` reads them (TOML, else text)."""
+    from .checks import setting_value
+
     options = {}
     for item in items:
         name, sep, text = item.partition("=")
         if not sep or not name.strip():
             raise UserError(f"--planner-option takes NAME=VALUE, got '{item}'")
-        value = text.strip()
-        for kind in (int, float):
-            try:
-                value = kind(value)
-                break
-            except ValueError:
-                pass
-        options[name.strip()] = value
+        options[name.strip()] = setting_value(text)
     return options
 
 

@@ -414,7 +414,7 @@ class Run:
                 raise UserError(other_settings(self.out, changed, "choose another --out folder"))
             if rec.get("planner_digest") != self.planner_digest:
                 raise UserError(f"{self.out} holds a run made with another version of the planner's code "
-                                f"({planner_label(self.cfg.planner)}); choose another --out folder")
+                                f"({planner_label(self.cfg.planner)}); choose another --out folder, or remove this one")
             if ((by_content and rec["content_hash"] != self._content_hash())
                     or rec.get("candidates") != [c.to_dict() for c in self.source.candidates]
                     or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):

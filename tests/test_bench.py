@@ -283,6 +283,12 @@ def test_set_overrides_parse_as_toml_values():
     assert got == {"ensemble": 4, "field": {"lr": 0.02, "n_samples": 16}, "eval_views": [5, 10],
                    "planner_options": {"form": "log"}, "rig": "interior", "fov": 40.5}
     assert isinstance(got["ensemble"], int) and isinstance(got["field"]["lr"], float)
+    # plan's --planner-option reads its values the same way.
+    from mitsuba_active.cli import _parse_options
+
+    got = _parse_options(["form=log", "lam=.5", "probes=2", "flag=false", "angles=[10, 20]", "name=x y"])
+    assert got == {"form": "log", "lam": 0.5, "probes": 2, "flag": False, "angles": [10, 20], "name": "x y"}
+    assert isinstance(got["probes"], int) and got["flag"] is False
 
 
 @pytest.mark.parametrize("item, message", [
@@ -459,3 +465,21 @@ def test_a_suite_runs_a_planner_file_beside_it_in_worker_processes(tiny_suite, t
     with pytest.raises(UserError, match="my planner.py:Last and my_planner.py:Last would share run folders"):
         run_suite(tiny_suite, tmp_path / "out3", "quick", scenes=["ball"], progress=False)
     assert not (tmp_path / "out3").exists()
+
+
+def test_a_failed_job_stops_the_workers_without_tracebacks(tiny_suite, tmp_path):
+    import subprocess
+    import sys
+
+    (tmp_path / "wrong.py").write_text("from mitsuba_active.planners import Planner\n"
+                                      "class Wrong(Planner):\n"
+                                      "    def select(self, state, batch):\n"
+                                      "        return [3]\n")
+    tiny_suite.write_text(tiny_suite.read_text().replace('["even", "rfe"]', '["wrong.py:Wrong"]'))
+    proc = subprocess.run([sys.executable, "-m", "mitsuba_active", "bench", str(tiny_suite), "--workers", "2",
+                           "--out", str(tmp_path / "out"), "--quiet"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2, proc.stderr
+    # Idle workers that the failure stops exit at once, not through an exception in their exit handlers.
+    assert proc.stderr.strip().splitlines() == [
+        "mitsuba-active: error: the wrong.py:Wrong planner answered list: select(state, batch) must return "
+        "(indices, scores): 1 candidate indices in [0, 8), and 8 scores or None"], proc.stderr

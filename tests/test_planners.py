@@ -203,6 +203,8 @@ def test_planner_options_may_be_keyword_only(tmp_path):
         "        return [0], None\n")
     with pytest.raises(UserError, match="'any.py:A': no \\['x'\\]$"):  # it takes any name: its own message
         make_planner(f"{tmp_path / 'any.py'}:A", x=1)
+    with pytest.raises(UserError, match="no \\['name'\\]$"):  # an option may be called name
+        make_planner(f"{tmp_path / 'any.py'}:A", name="x")
 
 
 def test_a_planner_module_and_the_files_beside_a_planner_import(tmp_path, monkeypatch):
@@ -258,7 +260,8 @@ def test_a_planners_answer_is_checked(answer, message):
         def select(self, state, batch):
             return answer
 
-    with pytest.raises(UserError, match=f"the odd planner {message}.*must return 1 candidate indices in \\[0, 12\\)"):
+    expected = "must return \\(indices, scores\\): 1 candidate indices in \\[0, 12\\)"
+    with pytest.raises(UserError, match=f"the odd planner {message}.*{expected}"):
         Odd().checked_select(PlanningState(CANDS, []), 1)
     picks, scores = make_planner("coverage").checked_select(PlanningState(CANDS, [0]), 2)
     assert len(picks) == 2 and all(type(i) is int for i in picks) and scores.dtype == np.float64

@@ -87,7 +87,8 @@ class Planner:
         C scores or None. Returns the picks as ints and the scores as float64."""
         answer = self.select(state, batch)
         n = len(state.candidates)
-        expected = f"select(state, batch) must return {batch} candidate indices in [0, {n}) and {n} scores or None"
+        expected = (f"select(state, batch) must return (indices, scores): {batch} candidate indices in [0, {n}), "
+                    f"and {n} scores or None")
         if not (isinstance(answer, tuple) and len(answer) == 2):
             raise UserError(f"the {self.name} planner answered {type(answer).__name__}: {expected}")
         picks, scores = answer
@@ -295,7 +296,7 @@ def planner_digest(name: str) -> str | None:
     return _LOADED[str(Path(where).resolve()) if _is_file(where) else where][1]
 
 
-def make_planner(name: str, **options) -> Planner:
+def make_planner(name: str, /, **options) -> Planner:
     """Instantiate a planner by registered name or reference; unknown names and options raise UserError."""
     cls = planner_class(name)
     try:

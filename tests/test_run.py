@@ -309,6 +309,12 @@ def test_plan_runs_a_planner_of_ones_own(spot_xml, tmp_path, monkeypatch):
     # Edited code is another planner: its run is not resumed or counted as done.
     res = CliRunner().invoke(main, args)
     assert res.exit_code == 0 and "already complete" in res.output, res.output
+    # The same code elsewhere (a moved or copied project) is the same planner.
+    (tmp_path / "moved").mkdir()
+    (tmp_path / "moved" / "mine.py").write_text(PLANNER_FILE)
+    moved = [*args[:3], "moved/mine.py:Last", *args[4:], "--out", str(out)]
+    res = CliRunner().invoke(main, moved)
+    assert res.exit_code == 0 and "already complete" in res.output, res.output
     (tmp_path / "mine.py").write_text(PLANNER_FILE.replace("self.offset\n", "self.offset + 1\n"))
     res = CliRunner().invoke(main, args)
     assert res.exit_code == 2 and "another version of the planner's code (mine.py:Last)" in res.output, res.output

@@ -238,6 +238,7 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
         if other != p:
             raise UserError(f"the planners {planner_label(other)} and {planner_label(p)} would share run folders "
                             "and table rows; rename one of their files")
+    digests = {p: planner_digest(p) for p in planners}  # each file read once
     prof.pop("seeds")
     jobs, meshes = [], {}
     for sc in suite.scenes:
@@ -268,7 +269,7 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                 field_config(cfg)
                 jobs.append(Job(sc.name, planner_label(planner), int(seed), str(xml), asdict(cfg),
                                 str(out_dir / "runs" / sc.name / f"{planner_folder(planner)}-seed{seed}"),
-                                planner_digest=planner_digest(planner)))
+                                planner_digest=digests[planner]))
     if author:
         for sc in suite.scenes:
             if sc.name in meshes:
@@ -308,6 +309,7 @@ def _author_suite_scene(sc, xml: Path, jobs: list[Job]) -> None:
 
 def _refuse_other_runs(jobs: list[Job]) -> None:
     """Refuse, before any run starts, a suite folder whose runs have other settings."""
+    from .planners.base import planner_folder
     from .run import config_differences, other_settings
 
     for job in jobs:
@@ -318,10 +320,10 @@ def _refuse_other_runs(jobs: list[Job]) -> None:
         if changed:
             raise UserError(other_settings(job.out, changed, "use another --out for this variant of the suite"))
         if rec.get("planner_digest") != job.planner_digest:
-            suite_dir, folder = Path(job.out).parent.parent.parent, Path(job.out).name.rpartition("-seed")[0]
+            suite_dir = Path(job.out).parent.parent.parent
             raise UserError(f"{suite_dir} holds runs made with another version of the planner's code "
                             f"({job.planner}); use another --out, undo the change, or remove its runs "
-                            f"({suite_dir / 'runs' / '*' / folder}-seed*)")
+                            f"({suite_dir / 'runs' / '*' / planner_folder(job.config['planner'])}-seed*)")
 
 
 def run_job(job: Job, threads: int | None = None) -> dict:

@@ -19,7 +19,7 @@ import click
 from click.core import ParameterSource
 
 from .errors import UserError
-from .imageio_utils import new_entries, remove_new
+from .imageio_utils import folder_name, new_entries, remove_new
 from .scenes import BUNDLED_SCENE
 
 
@@ -364,7 +364,6 @@ def export(run_dir, out):
 def bench(suite, out, profile, workers, seeds, planners, scenes, overrides, report_only, quiet):
     """Run a benchmark SUITE (TOML): scenes x planners x seeds; write tables and plots."""
     from .bench import parse_overrides, run_suite
-    from .planners.base import folder_name
 
     split = lambda s: [x.strip() for x in s.split(",") if x.strip()] if s else None  # noqa: E731
     try:

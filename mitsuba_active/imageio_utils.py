@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import secrets
 import shutil
 from pathlib import Path
@@ -53,6 +54,11 @@ def remove_new(out: Path, top, before) -> None:
     elif out.is_dir():
         for p in set(out.iterdir()) - before:
             shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+
+
+def folder_name(text: str) -> str:
+    """``text`` with each character that does not belong in a folder name replaced by ``_``."""
+    return re.sub(r"[^A-Za-z0-9._=-]", "_", text)
 
 
 def write_exr(path, channels: dict[str, np.ndarray]) -> None:

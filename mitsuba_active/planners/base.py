@@ -13,7 +13,6 @@ import hashlib
 import importlib
 import importlib.util
 import inspect
-import re
 import sys
 import traceback
 from dataclasses import dataclass, field
@@ -23,6 +22,7 @@ import numpy as np
 
 from ..checks import is_whole
 from ..errors import UserError
+from ..imageio_utils import folder_name
 
 
 @dataclass
@@ -179,11 +179,6 @@ def planner_label(name: str) -> str:
     name as it is, ``FILE.py:CLASS`` as ``file.py:CLASS`` (without its folder)."""
     where, cls = _parse(name)
     return f"{Path(where).name}:{cls}" if _is_file(where) else name
-
-
-def folder_name(text: str) -> str:
-    """``text`` with each character that does not belong in a folder name replaced by ``_``."""
-    return re.sub(r"[^A-Za-z0-9._=-]", "_", text)
 
 
 def planner_folder(name: str) -> str:

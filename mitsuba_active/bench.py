@@ -538,7 +538,9 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
     planners = [p for p in dict.fromkeys(j.planner for j in jobs)]
     views = table_views(jobs)
     summary = {"suite": suite.name, "profile": profile, "overrides": overrides or {},
-               "table_views": list(views), "cells": []}
+               "table_views": list(views), "runs": len(jobs),
+               "runs_reported": sum(len(recs) for by_planner in data.values() for recs in by_planner.values()),
+               "cells": []}
     if not data:  # nothing finished: keep whatever report is there
         return summary
     for scene in scenes:

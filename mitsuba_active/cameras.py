@@ -19,12 +19,41 @@ from fractions import Fraction
 
 import numpy as np
 
+from .checks import is_number
 from .errors import UserError
 
 #: Mitsuba camera frame -> OpenGL/Blender camera frame (and back: it is its own inverse).
 MITSUBA_TO_OPENGL = np.diag([-1.0, 1.0, -1.0, 1.0])
 #: Mitsuba camera frame -> OpenCV camera frame (its own inverse too).
 MITSUBA_TO_OPENCV = np.diag([-1.0, -1.0, 1.0, 1.0])
+
+
+def rigid_pose(matrix, what="pose") -> np.ndarray:
+    """A camera-to-world matrix checked to be a rigid motion: (4, 4) float64.
+
+    ``matrix`` is 4x4 (or 3x4, the bottom row implied) and finite, with a
+    rotation part that may be off by rounding (~1e-7 in dataset files): it
+    is re-orthonormalised. A scaled, sheared or mirrored rotation, or another
+    bottom row than ``[0, 0, 0, 1]``, raises :class:`UserError` naming ``what``.
+    """
+    try:
+        m = np.array(matrix, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise UserError(f"{what} is not a numeric matrix") from None
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
+    if m.shape != (4, 4):
+        raise UserError(f"{what} must be 4x4, got shape {m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise UserError(f"{what} has non-finite entries")
+    if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], rtol=0, atol=1e-6):
+        raise UserError(f"{what} must have the bottom row [0, 0, 0, 1], got {m[3].tolist()}")
+    u, s, vt = np.linalg.svd(m[:3, :3])
+    if np.abs(s - 1.0).max() > 1e-2 or np.linalg.det(m[:3, :3]) <= 0:
+        raise UserError(f"{what} is not a rigid motion: its 3x3 part scales, shears or mirrors "
+                        f"(singular values {np.round(s, 4).tolist()}, det {np.linalg.det(m[:3, :3]):.3g})")
+    m[:3, :3] = u @ vt
+    return m
 
 
 def look_at(origin, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
@@ -67,7 +96,13 @@ class Camera:
 
     def __post_init__(self):
         object.__setattr__(self, "to_world", np.asarray(self.to_world, dtype=np.float64).reshape(4, 4))
-        if int(self.width) <= 0 or int(self.height) <= 0:
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if not is_number(value) or not float(value).is_integer():
+                raise UserError(f"image width and height must be whole numbers of pixels, "
+                                f"got {self.width!r}x{self.height!r}")
+            object.__setattr__(self, name, int(value))
+        if self.width <= 0 or self.height <= 0:
             raise UserError(f"image resolution must be positive, got {self.width}x{self.height}")
         if not 0.0 < self.fov < 180.0:
             raise UserError(f"field of view must be in (0, 180) degrees, got {self.fov}")

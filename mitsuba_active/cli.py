@@ -381,6 +381,10 @@ def bench(suite, out, profile, workers, seeds, planners, scenes, overrides, repo
     if not summary["cells"]:
         click.echo(f"note: no finished runs with these settings in {out} yet: no report written", err=True)
     else:
+        if summary["runs_reported"] < summary["runs"]:
+            # Only --report-only gets here: a suite that runs finishes every job or stops with an error.
+            click.echo(f"note: the report covers {summary['runs_reported']} of the suite's {summary['runs']} runs; "
+                       "the others have not finished with these settings and planner code", err=True)
         click.echo(f"tables and plots in {out / 'report'}")
 
 

@@ -30,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import MITSUBA_TO_OPENGL, Camera
+from .cameras import MITSUBA_TO_OPENGL, Camera, rigid_pose
+from .checks import is_whole
 from .errors import UserError
 from .groundtruth import View
 from .imageio_utils import linear_to_srgb, read_exr, srgb_to_linear
@@ -127,6 +128,11 @@ class DatasetSource:
             n_candidates: keep at most this many candidate frames, evenly spaced.
             resolution: target width in pixels when ``downscale`` is None.
         """
+        for key, count in (("n_candidates", n_candidates), ("n_heldout", n_heldout)):
+            if count is not None and (not is_whole(count) or count < 0):
+                raise UserError(f"{key} must be a whole number >= 0 (or None: all frames), got {count!r}")
+        if n_candidates == 0:
+            raise UserError("at least one candidate view is needed, got n_candidates=0")
         files, name, root = _locate(path)
         metas = [(f, _read_json(f)) for f in files]
         train, test = _split(metas, files)
@@ -158,7 +164,7 @@ class DatasetSource:
         test = _subsample([_make_frame(t, downscale) for t in test], n_heldout)
         if not test:
             raise UserError(f"{root}: no held-out frames to evaluate on (no test or val split, or "
-                            "--heldout 0); tag some frames \"split\": \"test\"")
+                            "a held-out count of 0); tag some frames \"split\": \"test\"")
         if bounds is None:
             bounds = estimate_bounds([f.camera for f in train + test])
         src = cls(train, test, bounds[0], bounds[1], name=name, white_background=white_background)
@@ -382,19 +388,9 @@ def _parse_frame(frame: dict, meta: dict, json_path: Path, index: int):
     """Validate one frame's pose; ``(image, to_world (Mitsuba), camera keys, (map, scale, is distance), where)``."""
     image = _image_path(frame, json_path, index)
     where = f"{json_path}: frame {index} ({frame.get('file_path')})"
-    try:
-        m = np.asarray(frame["transform_matrix"], dtype=np.float64)
-    except KeyError:
-        raise UserError(f"{where} has no 'transform_matrix'") from None
-    except (TypeError, ValueError):
-        raise UserError(f"{where}: transform_matrix is not a numeric matrix") from None
-    if m.shape == (3, 4):
-        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
-    if m.shape != (4, 4):
-        raise UserError(f"{where}: transform_matrix must be 4x4, got shape {m.shape}")
-    if not np.all(np.isfinite(m)):
-        raise UserError(f"{where}: transform_matrix has non-finite entries")
-    to_world = opengl_to_mitsuba(m, where)
+    if "transform_matrix" not in frame:
+        raise UserError(f"{where} has no 'transform_matrix'")
+    to_world = opengl_to_mitsuba(frame["transform_matrix"], f"{where}: transform_matrix")
     keys = {k: frame.get(k, meta.get(k)) for k in CAMERA_KEYS}
     depth, scale = None, 1.0
     # distance_file_path: our own export (EXR channel Z, distance from the optical centre).
@@ -412,20 +408,14 @@ def _parse_frame(frame: dict, meta: dict, json_path: Path, index: int):
     return image, to_world, keys, (depth, scale, is_distance), where
 
 
-def opengl_to_mitsuba(matrix, where="transform_matrix") -> np.ndarray:
+def opengl_to_mitsuba(matrix, what="transform_matrix") -> np.ndarray:
     """OpenGL/Blender camera-to-world (looks along -Z) -> Mitsuba camera-to-world (looks along +Z).
 
-    The rotation is re-orthonormalised (dataset files store ~1e-7 errors);
-    a scaled, sheared or mirrored rotation raises :class:`UserError`.
+    The matrix is checked and its rotation re-orthonormalised by
+    :func:`~mitsuba_active.cameras.rigid_pose` (dataset files store ~1e-7
+    errors); ``what`` names it in the :class:`UserError` of a bad one.
     """
-    m = np.array(matrix, dtype=np.float64).reshape(4, 4)
-    r = m[:3, :3]
-    u, s, vt = np.linalg.svd(r)
-    if np.abs(s - 1.0).max() > 1e-2 or np.linalg.det(r) <= 0:
-        raise UserError(f"{where}: the rotation part of transform_matrix is not a rotation "
-                        f"(singular values {np.round(s, 4).tolist()}, det {np.linalg.det(r):.3g})")
-    m[:3, :3] = u @ vt
-    return m @ MITSUBA_TO_OPENGL
+    return rigid_pose(matrix, what) @ MITSUBA_TO_OPENGL
 
 
 def mitsuba_to_opengl(to_world) -> np.ndarray:

@@ -18,7 +18,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from .cameras import Camera, check_disjoint, scene_rigs
+from .cameras import Camera, check_disjoint, rigid_pose, scene_rigs
+from .checks import is_whole
 from .errors import UserError
 from .groundtruth import GroundTruth, View
 
@@ -110,8 +111,8 @@ class ActiveViewEnv(gym.Env):
         n = len(source.candidates)
         if n == 0:
             raise UserError("the environment has no candidate views")
-        if int(budget) <= 0:
-            raise UserError(f"the view budget must be positive, got {budget}")
+        if not is_whole(budget) or budget <= 0:
+            raise UserError(f"the view budget must be a positive whole number, got {budget!r}")
         if budget > n:
             raise UserError(f"the view budget ({budget}) is larger than the number of candidate views ({n})")
         sizes = {(c.height, c.width) for c in source.candidates}
@@ -133,9 +134,12 @@ class ActiveViewEnv(gym.Env):
     def reset(self, *, seed=None, options=None):
         """Start over; ``options={"initial_views": k}`` captures k distinct random candidates first."""
         super().reset(seed=seed)
-        k = int((options or {}).get("initial_views", 1))
-        if not 0 <= k <= self.budget:
-            raise UserError(f"initial views ({k}) must be between 0 and the budget ({self.budget})")
+        unknown = sorted(set(options or {}) - {"initial_views"}, key=str)
+        if unknown:
+            raise UserError(f"unknown reset option {', '.join(map(repr, unknown))}; the one option is 'initial_views'")
+        k = (options or {}).get("initial_views", 1)
+        if not is_whole(k) or not 0 <= k <= self.budget:
+            raise UserError(f"initial views ({k!r}) must be a whole number between 0 and the budget ({self.budget})")
         self.captured, self.views = [], []
         for i in self.np_random.choice(self.action_space.n, size=k, replace=False):
             self._capture(int(i))
@@ -171,8 +175,10 @@ class ActiveViewEnv(gym.Env):
         The view is returned as an observation but not added to the captured set.
         A pose that is a candidate's or held-out camera's up to single
         precision (an observation's ``pose`` is float32) gives that camera's view.
+        ``pose`` must be a rigid motion, 4x4 or 3x4 (else UserError, see
+        :func:`~mitsuba_active.cameras.rigid_pose`).
         """
-        pose = np.asarray(pose, dtype=np.float64)
+        pose = rigid_pose(pose, "the pose")
         # Single precision: 1e-6 on the rotation, relative to the position's size on the position.
         tol = 1e-6 * max(1.0, float(np.abs(pose[:3, 3]).max()))
         known = [c for c in self.source.candidates + self.source.heldout

@@ -3,13 +3,15 @@
 Poses are converted to the OpenGL/Blender camera convention (camera looks
 along -Z, +Y up) that those tools expect. Each frame carries its PNG image
 and an EXR with the distance from the optical centre (channel ``Z``), except
-in runs of a dataset without depth maps, which have no distances.
+in runs of a dataset without depth maps, which have no distances. The
+scene's bounds are written as ``aabb`` (as :mod:`.datasets` reads them back).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import re
 import shutil
 import warnings
 from pathlib import Path
@@ -18,6 +20,10 @@ from .cameras import Camera
 from .datasets import mitsuba_to_opengl
 from .errors import UserError
 from .imageio_utils import atomic_write
+
+
+#: The names of the files an export writes beside transforms.json.
+_WRITTEN = re.compile(r"images/view_\d{3,}\.png|distance/view_\d{3,}\.exr")
 
 
 def export_transforms(run_dir, out_dir=None) -> Path:
@@ -72,12 +78,30 @@ def export_transforms(run_dir, out_dir=None) -> Path:
     data = {"camera_model": "OPENCV", "camera_angle_x": math.radians(ref.fov),
             "fl_x": k[0, 0], "fl_y": k[1, 1], "cx": k[0, 2], "cy": k[1, 2], "w": ref.width, "h": ref.height,
             "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0}
+    if rec.get("bbox"):  # the scene's bounds (runs recorded before they were kept have none)
+        data["aabb"] = rec["bbox"]
     if distances:
         data["distance_note"] = ("distance_file_path: EXR channel Z, distance from the optical centre in scene "
                                  "units along each pixel-centre ray (not depth); 0 where nothing is hit")
     data["frames"] = frames
     path = out / "transforms.json"
+    earlier = _exported_files(path)
     with atomic_write(path) as tmp:
         tmp.write_text(json.dumps(data, indent=1))
+    # An export over an earlier one: its frames that this one does not have go.
+    now = {f[key] for f in frames for key in ("file_path", "distance_file_path") if key in f}
+    for name in sorted(earlier - now):
+        (out / name).unlink(missing_ok=True)
     return path
+
+
+def _exported_files(path: Path) -> set[str]:
+    """The image and distance files an earlier export listed in ``path``
+    (only names that this module writes, so no other file is ever removed)."""
+    try:
+        frames = json.loads(path.read_text()).get("frames", [])
+    except (OSError, ValueError, AttributeError):
+        return set()
+    names = {f.get(key) for f in frames if isinstance(f, dict) for key in ("file_path", "distance_file_path")}
+    return {n for n in names if isinstance(n, str) and _WRITTEN.fullmatch(n)}
 

@@ -152,6 +152,8 @@ class RunConfig:
         :class:`~mitsuba_active.groundtruth.GroundTruth`)."""
         from .datasets import open_source
 
+        if not self.scene:
+            raise UserError("no scene given: set RunConfig.scene to a scene XML, a transforms.json or a dataset folder")
         return open_source(self.scene, rig=self.rig, n_candidates=self.candidates, n_heldout=self.heldout,
                            resolution=self.resolution, fov=self.fov, spp=self.spp, downscale=self.downscale,
                            cache_dir=cache_dir)
@@ -277,15 +279,21 @@ def field_config(cfg: RunConfig, planner: bool = True):
     return FieldConfig(**{**base, **cfg.field})
 
 
-def make_ensemble(source, cfg: RunConfig, n_members: int, seed: int, planner: bool = True):
-    """The planner's ensemble (``planner=True``) or an evaluation field, configured from ``cfg``."""
-    from .field import Ensemble
-
+def source_field_config(source, cfg: RunConfig, planner: bool = True):
+    """:func:`field_config`, also UserError when the source cannot train such a field."""
     config = field_config(cfg, planner)
     if config.empty_weight > 0 and not isinstance(source, SceneSource):
         # A dataset's mask marks where the distance is known, not which rays hit nothing.
         raise UserError("the empty-ray loss (empty_weight) needs rendered ground truth: a dataset "
                         "does not say which rays hit nothing")
+    return config
+
+
+def make_ensemble(source, cfg: RunConfig, n_members: int, seed: int, planner: bool = True):
+    """The planner's ensemble (``planner=True``) or an evaluation field, configured from ``cfg``."""
+    from .field import Ensemble
+
+    config = source_field_config(source, cfg, planner)
     return Ensemble(source.bbox_min, source.bbox_max, n_members=n_members, config=config, seed=seed)
 
 
@@ -352,9 +360,14 @@ def source_differences(source, cfg: RunConfig) -> list[str]:
     as ``"name=value (the source's: value)"``: the scene, image width, view
     counts and samples per pixel. Not ``rig`` and ``fov``, so that a source
     with cameras of the caller's own can run (run.json records the cameras
-    themselves). Datasets are not checked: their frames make the views."""
+    themselves). A dataset opened by ``DatasetSource.from_path`` must have the
+    frames and image size that ``cfg.open_source()`` gives; one built from
+    frames of the caller's own is not checked."""
+    from .datasets import DatasetSource
     from .env import SceneSource
 
+    if isinstance(source, DatasetSource):
+        return _dataset_differences(source, cfg) if source.content_hash is not None else []
     if not isinstance(source, SceneSource):
         return []
     have = {"resolution": source.candidates[0].width, "heldout": len(source.heldout),
@@ -366,6 +379,26 @@ def source_differences(source, cfg: RunConfig) -> list[str]:
     scene = Path(source.scene.path)
     if not cfg.scene or Path(cfg.scene).resolve() != scene.resolve():
         unlike.insert(0, f"scene={cfg.scene!r} (the source's: {str(scene)!r})")
+    return unlike
+
+
+def _dataset_differences(source, cfg: RunConfig) -> list[str]:
+    """:func:`source_differences` of a dataset: against the one ``cfg`` opens."""
+    ref = cfg.open_source()
+    if getattr(ref, "content_hash", None) != source.content_hash:  # another dataset, or a scene
+        return [f"scene={cfg.scene!r} (the source's: the dataset {source.name!r})"]
+    unlike = []
+    if (ref.candidates[0].width, ref.candidates[0].height) != (source.candidates[0].width,
+                                                               source.candidates[0].height):
+        unlike.append(f"downscale={cfg.downscale!r}, resolution={cfg.resolution!r}: images of "
+                      f"{ref.candidates[0].width}x{ref.candidates[0].height} pixels (the source's: "
+                      f"{source.candidates[0].width}x{source.candidates[0].height})")
+    for name, mine, theirs in (("candidates", ref.candidates, source.candidates),
+                               ("heldout", ref.heldout, source.heldout)):
+        same = len(mine) == len(theirs)
+        if not same or not np.allclose([c.to_world for c in mine], [c.to_world for c in theirs], atol=1e-6):
+            unlike.append(f"{name}={getattr(cfg, name)!r}: {len(mine)} frames (the source's: {len(theirs)}"
+                          f"{', other ones' if same else ''})")
     return unlike
 
 
@@ -384,6 +417,7 @@ class Run:
         self.planner = make_planner(cfg.planner, **cfg.planner_options)
         self.planner_digest = planner_digest(cfg.planner)  # of the code just loaded
         self.planner.check_ensemble_size(cfg.ensemble)
+        source_field_config(source, cfg)  # field options are checked before anything is written
         self.env = ActiveViewEnv(source, cfg.budget)
         self.rng = planner_rng(cfg.seed)
         self.record = None
@@ -411,20 +445,22 @@ class Run:
             by_content = rec.get("content_hash") is not None and self._content_hash() is not None
             changed = config_differences(rec.get("config"), self._config_dict(), compare_scene=not by_content)
             if changed:
-                raise UserError(other_settings(self.out, changed, "choose another --out folder"))
+                raise UserError(other_settings(self.out, changed, "choose another run folder (--out)"))
             if rec.get("planner_digest") != self.planner_digest:
                 raise UserError(f"{self.out} holds a run made with another version of the planner's code "
-                                f"({planner_label(self.cfg.planner)}); choose another --out folder, or remove this one")
+                                f"({planner_label(self.cfg.planner)}); choose another run folder (--out), or remove this one")
             if ((by_content and rec["content_hash"] != self._content_hash())
                     or rec.get("candidates") != [c.to_dict() for c in self.source.candidates]
                     or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):
                 raise UserError(f"{self.out} holds a run of a scene or dataset that has changed since; "
-                                "choose another --out folder")
+                                "choose another run folder (--out)")
             self.record = rec
             return True
         self.record = {"format": RUN_FORMAT, "config": self._config_dict(),
                        "planner_options": self.planner.options(), "planner_digest": self.planner_digest,
                        "scene": self.source.name,
+                       "bbox": [np.asarray(self.source.bbox_min, float).tolist(),
+                                np.asarray(self.source.bbox_max, float).tolist()],
                        "candidates": [c.to_dict() for c in self.source.candidates],
                        "heldout": [c.to_dict() for c in self.source.heldout],
                        "content_hash": self._content_hash(),
@@ -540,7 +576,8 @@ class Run:
             self.record["rounds"].append({
                 "views": len(self.env.captured), "picks": [int(i) for i in picks],
                 "poses": [self.source.candidates[int(i)].to_world.tolist() for i in picks],
-                "scores": None if scores is None else [float(s) for s in scores],
+                # JSON has no inf or NaN: a score that is not finite is written as null.
+                "scores": None if scores is None else [float(s) if math.isfinite(s) else None for s in scores],
                 "select_seconds": round(t_select, 4), "train_seconds": round(time.perf_counter() - t1, 4)})
             self._save_round()
             bar.update(len(picks))

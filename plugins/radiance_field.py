@@ -102,7 +102,9 @@ def _make_class(base):
             if "filename" not in props:
                 raise ValueError(f"{NAME}: the 'filename' parameter (a saved ensemble) is required")
             self.filename = _ensemble_path(str(props["filename"]))
-            self.linear = bool(props.get("linear", True))
+            self.linear = props.get("linear", True)
+            if not isinstance(self.linear, bool):  # e.g. the string "false", which bool() reads as true
+                raise ValueError(f"{NAME}: 'linear' must be a boolean, got {self.linear!r}")
             self.ensemble = Ensemble.load(self.filename)
             self._sensor = None
 

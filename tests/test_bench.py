@@ -3,8 +3,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
 from mitsuba_active.bench import load_suite, run_suite
+from mitsuba_active.cli import main
 from mitsuba_active.errors import UserError
 from mitsuba_active.metrics import distance_error, iqm, psnr, ssim, standard_error
 
@@ -166,6 +168,9 @@ def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
     # A report of what is finished, running nothing (seed 1 was never run).
     summary = run_suite(tiny_suite, out, "quick", seeds=[0, 1], progress=False, report_only=True)
     assert calls == [] and all(c["seeds"] == 1 for c in summary["cells"])
+    assert summary["runs"] == 2 * summary["runs_reported"] == 2 * len(summary["cells"])
+    res = CliRunner().invoke(main, ["bench", str(tiny_suite), "--out", str(out), "--seeds", "0,1", "--report-only"])
+    assert res.exit_code == 0 and f"covers {len(summary['cells'])} of the suite's {summary['runs']} runs" in res.output
     assert not list(out.rglob("*seed1*"))
     # With nothing finished (seed 2 alone) the report there stays as it was.
     table = (report / "table_psnr.md").read_text()

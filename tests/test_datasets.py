@@ -1,7 +1,9 @@
 """Pre-captured datasets: layouts, pose and intrinsics conventions, images, errors."""
 
+import dataclasses
 import json
 import math
+import re
 import warnings
 
 import imageio.v3 as iio
@@ -84,9 +86,9 @@ def test_pose_conversion_round_trips(rng):
 
 
 def test_mirrored_or_scaled_rotation_is_refused():
-    with pytest.raises(UserError, match="not a rotation"):
+    with pytest.raises(UserError, match="transform_matrix is not a rigid motion"):
         opengl_to_mitsuba(np.diag([1.0, 1.0, -1.0, 1.0]))
-    with pytest.raises(UserError, match="not a rotation"):
+    with pytest.raises(UserError, match="transform_matrix is not a rigid motion"):
         opengl_to_mitsuba(np.diag([2.0, 2.0, 2.0, 1.0]))
 
 
@@ -247,6 +249,33 @@ def test_the_empty_ray_loss_is_refused_on_a_dataset(tmp_path):
     make_ensemble(src, RunConfig(), 1, seed=0)
     with pytest.raises(UserError, match="empty_weight"):
         make_ensemble(src, RunConfig(field={"empty_weight": 1.0}), 1, seed=0)
+
+
+
+def test_a_run_refuses_a_dataset_its_config_does_not_describe(mic, mic_dir, tmp_path):
+    """run.json records the config as how the run was made: a dataset opened
+    with other settings (image size, frames kept) or another dataset is refused,
+    before anything is written; cfg.open_source() is accepted."""
+    from mitsuba_active.run import Run, RunConfig
+
+    cfg = RunConfig(scene=str(mic_dir), downscale=32, candidates=100, heldout=25, budget=3)
+    Run(mic, cfg, tmp_path / "ok", progress=False)
+    write_dataset(tmp_path / "other", n=6, size=(64, 64))
+    for change, unlike in ((dict(downscale=16), "images of 50x50 pixels (the source's: 25x25)"),
+                           (dict(candidates=10), "candidates=10: 10 frames (the source's: 100)"),
+                           (dict(heldout=3), "heldout=3: 3 frames (the source's: 25)"),
+                           (dict(scene=str(tmp_path / "other")), "the source's: the dataset 'nerf_synthetic_mic'")):
+        with pytest.raises(UserError, match=re.escape(unlike)):
+            Run(mic, dataclasses.replace(cfg, **change), tmp_path / "refused", progress=False)
+    with pytest.raises(UserError, match="unknown field option nsamples"):
+        Run(mic, dataclasses.replace(cfg, field={"nsamples": 3}), tmp_path / "refused", progress=False)
+    assert not (tmp_path / "refused").exists()
+    with pytest.raises(UserError, match="no scene given"):
+        RunConfig().open_source()
+    for counts, message in ((dict(n_candidates=0), "at least one candidate view"),
+                            (dict(n_heldout=2.5), "n_heldout must be a whole number")):
+        with pytest.raises(UserError, match=message):
+            DatasetSource.from_path(mic_dir, downscale=32, **counts)
 
 
 # -- errors -------------------------------------------------------------------------

@@ -61,6 +61,34 @@ def test_impossible_budgets(source):
         ActiveViewEnv(source, budget=0)
     with pytest.raises(UserError):
         ActiveViewEnv(source, budget=2).reset(options={"initial_views": 3})
+    for budget in ("3", 2.5):
+        with pytest.raises(UserError, match="budget must be a positive whole number"):
+            ActiveViewEnv(source, budget=budget)
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"initial_view": 2}, "unknown reset option 'initial_view'"),  # a typo would silently give 1 view
+    ({"initial_views": 1.5}, r"initial views \(1.5\) must be a whole number"),
+    ({"initial_views": None}, r"initial views \(None\) must be a whole number"),
+])
+def test_reset_options_are_checked(source, options, message):
+    with pytest.raises(UserError, match=message):
+        ActiveViewEnv(source, budget=2).reset(seed=0, options=options)
+
+
+@pytest.mark.parametrize("pose, message", [
+    (lambda p: p.ravel(), r"must be 4x4, got shape \(16,\)"),
+    (lambda p: p @ np.diag([2.0, 2.0, 2.0, 1.0]), "not a rigid motion"),
+    (lambda p: p @ np.diag([-1.0, 1.0, 1.0, 1.0]), "not a rigid motion"),  # mirrored
+    (lambda p: np.full((4, 4), np.nan), "non-finite"),
+    (lambda p: p + np.outer([0, 0, 0, 1.0], [0.5, 0, 0, 0]), "bottom row"),
+])
+def test_capture_pose_refuses_what_is_no_camera_pose(source, pose, message):
+    env = ActiveViewEnv(source, budget=2)
+    with pytest.raises(UserError, match=message):
+        env.capture_pose(pose(source.heldout[0].to_world))
+    # 3x4 is a pose with its bottom row left out.
+    assert np.allclose(env.capture_pose(source.heldout[0].to_world[:3])["rgb"], source.heldout_view(0).rgb)
 
 
 def test_capture_pose_snaps_only_to_the_same_camera(tmp_path):

@@ -311,6 +311,46 @@ def test_rays_that_would_spoil_training_are_refused(change, message):
         ens.set_rays(*change(np.asarray(o), np.asarray(d), np.asarray(c)), dist, hit)
 
 
+@pytest.mark.parametrize("distance, hit, message", [
+    (lambda d: np.where(np.arange(len(d)) == 0, np.nan, d), lambda h: np.ones_like(h), "distance must be a finite"),
+    (lambda d: -d, lambda h: np.ones_like(h), "distance must be a finite number >= 0"),
+    (lambda d: d, lambda h: np.full(len(h), 0.2), "hit must be booleans"),  # 0.2 would read as a hit
+])
+def test_distances_and_hits_that_would_be_misread_are_refused(distance, hit, message):
+    o, d, c, dist, h = views([[0.0, 0.3, 2.2]], width=8, height=8)
+    ens = Ensemble(*BOX, n_members=1, config=tiny_config(), seed=0)
+    with pytest.raises(UserError, match=message):
+        ens.set_rays(o, d, c, distance(np.asarray(dist, float)), hit(np.asarray(h)))
+    # Where nothing is hit the distance is not used: anything goes there.
+    ens.set_rays(o, d, c, np.where(h, dist, np.nan), np.asarray(h, float))
+
+
+def test_counts_and_boxes_are_checked():
+    for make, message in ((lambda: Ensemble([0, 0], [1, 1]), r"bbox_min must be a point \(x, y, z\)"),
+                          (lambda: Ensemble(*BOX, n_members=2.5), "whole number n_members"),
+                          (lambda: Ensemble(*BOX, n_members=0), "whole number n_members")):
+        with pytest.raises(UserError, match=message):
+            make()
+    o, d, c, dist, hit = views([[0.0, 0.3, 2.2]], width=4, height=4)
+    ens = Ensemble(*BOX, n_members=1, config=tiny_config(), seed=0)
+    ens.set_rays(o, d, c, dist, hit)
+    for steps in (-1, 2.5):
+        with pytest.raises(UserError, match="steps must be a whole number >= 0"):
+            ens.train(steps)
+    with pytest.raises(UserError, match="probes must be a whole number >= 1"):
+        ens.fisher_diag(o, d, probes=0)
+
+
+def test_save_to_a_path_it_cannot_write_is_one_line_and_leaves_nothing(tmp_path):
+    ens = Ensemble(*BOX, n_members=1, config=tiny_config(), seed=0)
+    with pytest.raises(UserError, match="it is a folder"):
+        ens.save(tmp_path)
+    (tmp_path / "file").write_text("")
+    with pytest.raises(UserError, match="cannot write ensemble file"):
+        ens.save(tmp_path / "file" / "field.npz")  # below a file
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
 def test_rendering_refuses_rays_it_would_misread():
     o, d, *_ = views([[0.0, 0.3, 2.2]], width=4, height=4)
     o, d = np.asarray(o), np.asarray(d)

@@ -90,6 +90,14 @@ def test_missing_filename_is_refused():
         mi.load_dict({"type": NAME})
 
 
+def test_linear_must_be_a_boolean(field_path):
+    """A string such as "false" would otherwise read as true."""
+    assert register()
+    with pytest.raises(Exception, match="'linear' must be a boolean, got 'false'"):
+        mi.load_dict({"type": NAME, "filename": str(field_path), "linear": "false"})
+    assert mi.load_dict({"type": NAME, "filename": str(field_path), "linear": False}).linear is False
+
+
 def test_a_relative_filename_is_found_beside_the_scene_xml(field_path, tmp_path, monkeypatch):
     import shutil
 

@@ -142,6 +142,18 @@ def test_export_round_trips_poses(source, tmp_path):
     rec_path.write_text(json.dumps({**rec, "finished": False}))
     with pytest.warns(UserWarning, match="unfinished run: exporting the 4 of 4 views"):
         export_transforms(tmp_path / "r", tmp_path / "ds2")
+    # The scene's bounds travel with it: the export reads back with the scene's box, not an estimate.
+    from mitsuba_active.datasets import DatasetSource
+
+    exported = DatasetSource.from_path(path)
+    assert np.allclose(exported.bbox_min, source.bbox_min) and np.allclose(exported.bbox_max, source.bbox_max)
+    # Exporting fewer views into the same folder leaves none of the earlier ones behind.
+    (tmp_path / "ds" / "notes.txt").write_text("mine")
+    rec_path.write_text(json.dumps({**rec, "captured": rec["captured"][:2]}))
+    export_transforms(tmp_path / "r", tmp_path / "ds")
+    assert sorted(p.name for p in (tmp_path / "ds").rglob("view_*")) == [
+        "view_000.exr", "view_000.png", "view_001.exr", "view_001.png"]
+    assert (tmp_path / "ds" / "notes.txt").read_text() == "mine"
 
 
 def test_export_keeps_each_cameras_field_of_view(tmp_path):
@@ -318,3 +330,26 @@ def test_plan_runs_a_planner_of_ones_own(spot_xml, tmp_path, monkeypatch):
     (tmp_path / "mine.py").write_text(PLANNER_FILE.replace("self.offset\n", "self.offset + 1\n"))
     res = CliRunner().invoke(main, args)
     assert res.exit_code == 2 and "another version of the planner's code (mine.py:Last)" in res.output, res.output
+
+
+def test_run_json_is_standard_json_when_scores_are_not_finite(source, tmp_path):
+    """JSON has no inf or NaN (other readers than Python's refuse them): such scores are written as null."""
+    (tmp_path / "masked.py").write_text('''
+import numpy as np
+from mitsuba_active.planners import Planner, greedy_top, unseen
+
+
+class Masked(Planner):
+    def select(self, state, batch):
+        scores = np.where(unseen(state), np.arange(len(state.candidates), dtype=float), -np.inf)
+        scores[0] = np.nan
+        return greedy_top(scores, unseen(state), batch), scores
+''')
+    _run(source, tmp_path / "r", planner=f"{tmp_path / 'masked.py'}:Masked", seed=1)
+
+    def refuse(name):
+        raise ValueError(f"{name} in run.json")
+
+    rec = json.loads((tmp_path / "r" / "run.json").read_text(), parse_constant=refuse)
+    scores = rec["rounds"][0]["scores"]
+    assert scores[0] is None and [s is None for s in scores[1:]] == [i in rec["captured"][:2] for i in range(1, 10)]

@@ -21,6 +21,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..checks import is_whole
 from ..errors import UserError
 from ..variant import require_variant
 from .config import FieldConfig
@@ -45,6 +46,18 @@ def _triples(values, what: str, name: str) -> np.ndarray:
     if a.ndim == 0 or a.shape[-1] != 3:
         raise UserError(f"{what}: {name} must be an array of 3-vectors, shape (N, 3), not {a.shape}")
     return a.reshape(-1, 3)
+
+
+def _point(values, what: str, name: str) -> np.ndarray:
+    """(3,) float64 from a 3-vector, else UserError naming ``what`` and ``name``."""
+    try:
+        p = np.asarray(values, np.float64)
+    except (TypeError, ValueError):
+        p = None
+    if p is None or p.size != 3:
+        raise UserError(f"{what}: {name} must be a point (x, y, z), got "
+                        f"{'shape ' + str(p.shape) if p is not None else repr(values)}")
+    return p.reshape(3)
 
 
 def _rays(origins, directions, what: str) -> tuple[np.ndarray, np.ndarray]:
@@ -82,14 +95,14 @@ class Ensemble:
                  config: FieldConfig | None = None, seed: int = 0):
         require_variant("Ensemble")
         self.config = config if config is not None else FieldConfig()
-        self.bbox_min = np.asarray(bbox_min, np.float64).reshape(3)
-        self.bbox_max = np.asarray(bbox_max, np.float64).reshape(3)
+        self.bbox_min, self.bbox_max = (_point(p, "Ensemble", name) for p, name in ((bbox_min, "bbox_min"),
+                                                                                      (bbox_max, "bbox_max")))
         extent = self.bbox_max - self.bbox_min
         if not (np.all(np.isfinite(extent)) and np.all(extent >= 0) and extent.max() > 0):
             raise UserError("Ensemble needs a finite bounding box with bbox_max >= bbox_min, "
                             "not a single point")
-        if int(n_members) < 1:
-            raise UserError("Ensemble needs n_members >= 1")
+        if not is_whole(n_members) or n_members < 1:
+            raise UserError(f"Ensemble needs a whole number n_members >= 1, got {n_members!r}")
         self.n_members = int(n_members)
         self.seed = int(seed)
         self.layout = GridLayout.from_config(self.config)
@@ -183,7 +196,10 @@ class Ensemble:
         c = _triples(rgb, "set_rays", "rgb")
         m = o.shape[0]
         dist = np.asarray(distance, np.float32).reshape(-1)
-        h = np.asarray(hit, bool).reshape(-1)
+        h = np.asarray(hit).reshape(-1)
+        if h.dtype != bool and not np.isin(h, (0, 1)).all():  # 0.2 would read as a hit
+            raise UserError("set_rays: hit must be booleans (or 0 and 1)")
+        h = h.astype(bool)
         if not (c.shape[0] == dist.shape[0] == h.shape[0] == m):
             raise UserError("set_rays: origins, directions, rgb, distance and hit "
                             "must describe the same number of rays")
@@ -197,7 +213,9 @@ class Ensemble:
         if c.min() < -1e-3 or c.max() > 1.0 + 1e-3:
             raise UserError(f"set_rays: rgb must lie in [0, 1] (got {c.min():.4g} to {c.max():.4g}; "
                             "divide 8-bit colours by 255)")
-        dist = np.where(h, np.nan_to_num(dist), 0.0).astype(np.float32)
+        if not (np.isfinite(dist[h]).all() and (dist[h] >= 0).all()):
+            raise UserError("set_rays: distance must be a finite number >= 0 where a ray hits")
+        dist = np.where(h, dist, 0.0).astype(np.float32)  # unused where nothing is hit
         self._rays = dict(o=mi.Point3f(o.T), d=mi.Vector3f(d.T), rgb=mi.Color3f(c.T),
                           distance=mi.Float(dist), hit=mi.Bool(h))
         dr.eval(self._rays)
@@ -318,6 +336,8 @@ class Ensemble:
         Raises:
             UserError: no rays set, or the loss became NaN/inf.
         """
+        if not is_whole(steps) or steps < 0:
+            raise UserError(f"train: steps must be a whole number >= 0, got {steps!r}")
         K = self.n_members
         losses = np.zeros(int(steps), np.float64)
         it = range(int(steps))
@@ -427,12 +447,14 @@ class Ensemble:
             (P,) float64.
         """
         self._check_member(member)
+        if not is_whole(probes) or probes < 1:
+            raise UserError(f"fisher_diag: probes must be a whole number >= 1, got {probes!r}")
         op, dp, n, n_pad, B = self._pad(origins, directions)
         rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(member),)))
         grid = mi.Float(dr.detach(self._opt["grid"]))
         bg = mi.Float(dr.detach(self._opt["background"]))
         acc = np.zeros(self.n_params, np.float64)
-        for _ in range(max(1, int(probes))):
+        for _ in range(int(probes)):
             v = np.zeros((n_pad, 3), np.float32)  # padding rays do not count
             v[:n] = rng.choice(np.float32([-1.0, 1.0]), size=(n, 3))
             dr.enable_grad(grid, bg)
@@ -449,7 +471,7 @@ class Ensemble:
             dr.disable_grad(grid, bg)
             g = np.concatenate([gg, gb])
             acc += g * g
-        return acc / max(1, int(probes))
+        return acc / int(probes)
 
     # ----------------------------------------------------------------- save
     def save(self, path):

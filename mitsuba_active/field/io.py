@@ -41,6 +41,7 @@ import drjit as dr
 import numpy as np
 
 from ..errors import UserError
+from ..imageio_utils import atomic_write
 from .config import FieldConfig
 from .grid import N_CHANNELS
 
@@ -74,9 +75,13 @@ def save_ensemble(ens, path) -> Path:
         G = int(ens.config.occupancy_resolution)
         arrays["occupancy"] = np.array(ens._occupancy, np.float32).reshape(G, G, G)
         arrays["occupancy_age"] = np.int64(ens._occupancy_age)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "wb") as f:
-        np.savez(f, **arrays)
+    if path.is_dir():
+        raise UserError(f"cannot write ensemble file {path}: it is a folder")
+    try:
+        with atomic_write(path) as tmp, open(tmp, "wb") as f:  # a failed write leaves no partial file
+            np.savez(f, **arrays)
+    except OSError as exc:
+        raise UserError(f"cannot write ensemble file {path}: {exc.strerror or exc}") from None
     return path
 
 

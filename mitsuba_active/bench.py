@@ -132,6 +132,10 @@ def load_suite(path) -> Suite:
             raise UserError(f"{path}: scene #{i + 1} needs exactly one of 'mesh' or 'xml'")
         kind = "mesh" if "mesh" in s else "xml"
         name = s.get("name") or Path(s[kind]).stem
+        # The name makes folders inside the suite's (scenes/NAME, runs/NAME).
+        if not isinstance(name, str) or name in (".", "..") or any(c in name for c in "/\\\0"):
+            raise UserError(f"{path}: scene #{i + 1}: name {name!r} cannot be a folder's name "
+                            "(no '/' or '\\', not '.' or '..')")
         extra = set(s) - {"name", "mesh", "xml"} - set(SCENE_OPTIONS) - run_fields
         if extra:
             raise UserError(f"{path}: scene '{name}' has unknown settings: {', '.join(sorted(extra))}")

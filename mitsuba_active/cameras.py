@@ -22,6 +22,12 @@ import numpy as np
 from .checks import is_number
 from .errors import UserError
 
+#: Most pixels of a camera's image (4096x4096): one image's rays are one batch.
+MAX_PIXELS, MAX_PIXELS_TEXT = 4096 * 4096, "4096x4096"
+
+#: Most cameras a generated rig makes (candidates, and held-out views).
+MAX_VIEWS = 100_000
+
 #: Mitsuba camera frame -> OpenGL/Blender camera frame (and back: it is its own inverse).
 MITSUBA_TO_OPENGL = np.diag([-1.0, 1.0, -1.0, 1.0])
 #: Mitsuba camera frame -> OpenCV camera frame (its own inverse too).
@@ -104,6 +110,9 @@ class Camera:
             object.__setattr__(self, name, int(value))
         if self.width <= 0 or self.height <= 0:
             raise UserError(f"image resolution must be positive, got {self.width}x{self.height}")
+        if self.width * self.height > MAX_PIXELS:
+            raise UserError(f"images of {self.width}x{self.height} pixels are too large: at most "
+                            f"{MAX_PIXELS_TEXT} pixels (a lower resolution, or a dataset's downscale)")
         if not 0.0 < self.fov < 180.0:
             raise UserError(f"field of view must be in (0, 180) degrees, got {self.fov}")
 
@@ -306,7 +315,8 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     ``interior`` places cameras inside a room; ``xml`` takes the XML's own
     sensors as candidates, with their poses, fields of view and clip
     distances (held-out views then come from a generated rig);
-    ``auto`` picks ``interior`` for rooms, else ``sphere``. The held-out rig
+    ``auto`` picks ``interior`` for rooms, ``hemisphere`` for an object on a
+    floor (a shape with the id ``floor``), else ``sphere``. The held-out rig
     is the same kind with a shifted spiral, and never coincides with a candidate.
 
     Images are ``width`` pixels wide and ``height`` high; ``height`` defaults
@@ -316,6 +326,9 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     """
     if rig not in RIG_KINDS:
         raise UserError(f"unknown rig '{rig}'; choose one of {', '.join(RIG_KINDS)}")
+    for what, n in (("candidate", n_candidates), ("held-out", n_heldout)):
+        if n > MAX_VIEWS:
+            raise UserError(f"{n} {what} views are more than a rig makes (at most {MAX_VIEWS})")
     if rig == "xml":
         if not scene.sensors:
             raise UserError(f"{scene.path} has no perspective sensor to use as candidates")
@@ -323,7 +336,8 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     height = height or width
     generated = rig
     if rig in ("auto", "xml"):  # the XML's own sensors get held-out views of the right kind
-        generated = "interior" if scene.interior else "sphere"
+        # Above a floor: views from below it would show its underside and nothing else.
+        generated = "interior" if scene.interior else "hemisphere" if scene.floor else "sphere"
     if generated == "interior":
         fov = 70.0 if fov is None else fov
         near, far = clip_range(scene.radius, 2.0 * scene.radius)

@@ -168,7 +168,7 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
     except BaseException:
         remove_new(out, *new)  # views without their cameras.json are no use to anyone
         raise
-    click.echo(f"wrote {len(cams)} views to {out}")
+    click.echo(f"wrote {len(cams)} view{'' if len(cams) == 1 else 's'} to {out}")
 
 
 def _parse_options(items) -> dict:
@@ -366,6 +366,9 @@ def bench(suite, out, profile, workers, seeds, planners, scenes, overrides, repo
     from .bench import parse_overrides, run_suite
 
     split = lambda s: [x.strip() for x in s.split(",") if x.strip()] if s else None  # noqa: E731
+    for option, value in (("--seeds", seeds), ("--planners", planners), ("--scenes", scenes)):
+        if value is not None and not split(value):  # '' would otherwise mean all of them
+            raise UserError(f"{option} names none; leave it out for the suite's")
     try:
         seed_list = [int(x) for x in split(seeds)] if seeds else None
     except ValueError:

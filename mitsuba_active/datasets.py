@@ -150,7 +150,7 @@ class DatasetSource:
         train = [t for t in train if t[0].is_file()]
         test = [t for t in test if t[0].is_file()]
         if not train and not test:
-            raise UserError(f"{root}: none of the dataset's image files exist")
+            raise UserError(f"{files[0]}: none of the dataset's image files exist (e.g. {missing[0]})")
         if not train:
             raise UserError(f"{root}: no training frame has an image file")
 

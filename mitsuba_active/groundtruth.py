@@ -62,14 +62,28 @@ def render_distance(mi_scene, camera: Camera) -> np.ndarray:
     return np.array(t, dtype=np.float32).reshape(camera.height, camera.width)
 
 
+#: Most samples Mitsuba renders at once: it traces all of a render's samples
+#: as one wavefront, so larger renders are split into passes of fewer samples
+#: per pixel (averaged), lest they run out of memory.
+MAX_PASS_SAMPLES = 1 << 24
+
+
 def render_rgb(mi_scene, camera: Camera, spp: int, seed: int = 0) -> np.ndarray:
     """(H, W, 3) float32 linear radiance from the scene's integrator (a path
     tracer when the scene names none, as Mitsuba XMLs may)."""
     import mitsuba as mi
 
     integrator = mi_scene.integrator() or _path_integrator(mi.variant())
-    img = mi.render(mi_scene, sensor=camera.sensor(spp), integrator=integrator, spp=spp, seed=seed)
-    return np.array(img, dtype=np.float32)[..., :3]
+    per_pass = max(1, MAX_PASS_SAMPLES // (camera.width * camera.height))
+    if spp <= per_pass:  # one pass: most renders
+        img = mi.render(mi_scene, sensor=camera.sensor(spp), integrator=integrator, spp=spp, seed=seed)
+        return np.array(img, dtype=np.float32)[..., :3]
+    total = np.zeros((camera.height, camera.width, 3))
+    for n, start in enumerate(range(0, spp, per_pass)):
+        k = min(per_pass, spp - start)
+        img = mi.render(mi_scene, sensor=camera.sensor(k), integrator=integrator, spp=k, seed=seed + n)
+        total += k * np.array(img, dtype=np.float64)[..., :3]
+    return (total / spp).astype(np.float32)
 
 
 @functools.lru_cache(maxsize=None)

@@ -60,6 +60,8 @@ def plot_metrics(series: dict[str, list[dict]], out_dir, title: str = "", bands:
         ax.set_xlabel("views captured")
         ax.xaxis.set_major_locator(plt.MaxNLocator(integer=True))
         ax.set_ylabel(label)
+        # Nearly equal values would otherwise get ticks relative to an offset (+8.217): unreadable.
+        ax.ticklabel_format(axis="y", useOffset=False)
         ax.set_title(title)
         ax.grid(alpha=0.3)
         ax.legend()

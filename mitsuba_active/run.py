@@ -448,7 +448,8 @@ class Run:
                 raise UserError(other_settings(self.out, changed, "choose another run folder (--out)"))
             if rec.get("planner_digest") != self.planner_digest:
                 raise UserError(f"{self.out} holds a run made with another version of the planner's code "
-                                f"({planner_label(self.cfg.planner)}); choose another run folder (--out), or remove this one")
+                                f"({planner_label(self.cfg.planner)}); choose another run folder (--out), "
+                                "or remove this one")
             if ((by_content and rec["content_hash"] != self._content_hash())
                     or rec.get("candidates") != [c.to_dict() for c in self.source.candidates]
                     or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):
@@ -613,10 +614,11 @@ class Run:
         scene = getattr(self.source, "scene", None)
         # A dataset has no scene: its cameras' own up vectors tell which way is up.
         up = scene.up if scene is not None else snapped_up(self.source.candidates)
+        n = len(self.env.captured)
         plot_views(self.source.candidates, self.env.captured, self.source.heldout, self.source.bbox_min,
                    self.source.bbox_max, self.out / "camera_views.png", up=up,
-                   initial=min(self.cfg.initial_views, len(self.env.captured)),
-                   title=f"{self.source.name}: {label}, {len(self.env.captured)} views")
+                   initial=min(self.cfg.initial_views, n),
+                   title=f"{self.source.name}: {label}, {n} view{'' if n == 1 else 's'}")
         preds = getattr(self, "_last_preds", None)
         if preds is None:  # resumed after the last evaluation: score again to get images
             _, preds = evaluate(self.source, self.env.views, self.cfg)

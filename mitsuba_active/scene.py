@@ -127,10 +127,18 @@ def _find_texture(mesh, mesh_path: Path, texture) -> tuple[np.ndarray | None, Pa
         cand = mesh_path.with_name(pattern.format(stem=mesh_path.stem))
         if cand.is_file():
             return np.asarray(uv), cand
-    image = getattr(getattr(mesh.visual, "material", None), "image", None)
+    image = _embedded_image(mesh)
     if image is not None and min(image.size) > 2:  # trimesh puts a 2x2 placeholder when there is none
         return np.asarray(uv), "embedded"
     return None, None
+
+
+def _embedded_image(mesh):
+    """The texture image a mesh file carries (a PIL image), or None: an OBJ
+    material's ``image``, or a glTF/GLB material's ``baseColorTexture``."""
+    material = getattr(mesh.visual, "material", None)
+    image = getattr(material, "image", None)
+    return image if image is not None else getattr(material, "baseColorTexture", None)
 
 
 def _check_image(path: Path) -> None:
@@ -229,6 +237,8 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
     if opts.env_radiance == 0 and not opts.sun and opts.point_lights == 0:
         warnings.warn("the scene has no light (no environment, sun or point lights): every view renders black",
                       stacklevel=2)
+    if Path(out_xml).suffix.lower() != ".xml":  # also '' and a folder's name
+        raise UserError(f"the scene file to write must end in .xml, got '{out_xml}'")
     mesh_path, out_xml = Path(mesh_path), Path(out_xml)
     mesh = load_mesh(mesh_path)
     vertices = normalise_vertices(mesh.vertices, opts.up)
@@ -251,7 +261,7 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
                   np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1))
         if texture == "embedded":
             tex_file = f"{mesh_path.stem}_texture.png"
-            mesh.visual.material.image.save(staging / tex_file)
+            _embedded_image(mesh).save(staging / tex_file)
         elif texture is not None:
             tex_file = f"{mesh_path.stem}_texture{Path(texture).suffix.lower()}"
             shutil.copyfile(texture, staging / tex_file)
@@ -291,6 +301,8 @@ class Scene:
         sensors: the XML's own perspective sensors as :class:`Camera` objects.
         up: (3,) world up axis, taken from the first sensor's up vector
             (snapped to the nearest axis), +Y when there is no sensor.
+        floor: True when a shape has the id ``floor`` (as ``scene --floor``
+            authors it): cameras below it would see its underside only.
     """
 
     path: Path
@@ -301,6 +313,7 @@ class Scene:
     interior: bool = False
     sensors: list = field(default_factory=list)
     up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+    floor: bool = False
 
     @property
     def center(self) -> np.ndarray:
@@ -457,5 +470,6 @@ def load_scene(xml_path, **params) -> Scene:
         m = np.array(s.world_transform().matrix, dtype=np.float64).reshape(4, 4)
         sensors.append(Camera(m, fov, int(size[0]), int(size[1]), float(s.near_clip()), float(s.far_clip())))
     up = snapped_up(sensors[:1])  # the first sensor's, as the scene's author set it up
-    return Scene(xml_path, mi_scene, lo, hi, digest, _is_interior(mi_scene, lo, hi), sensors, up)
+    floor = any(shape.id() == "floor" for shape in mi_scene.shapes())
+    return Scene(xml_path, mi_scene, lo, hi, digest, _is_interior(mi_scene, lo, hi), sensors, up, floor)
 

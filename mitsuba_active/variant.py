@@ -68,10 +68,24 @@ def find_llvm() -> str | None:
     return best
 
 
+#: The first bytes of ELF (Linux) and Mach-O (macOS, also universal) shared libraries.
+_LIBRARY_MAGIC = (b"\x7fELF", b"\xfe\xed\xfa\xce", b"\xfe\xed\xfa\xcf", b"\xce\xfa\xed\xfe",
+                  b"\xcf\xfa\xed\xfe", b"\xca\xfe\xba\xbe")
+
+
+def _is_shared_library(path: str) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return f.read(4) in _LIBRARY_MAGIC
+    except OSError:  # a folder, or unreadable
+        return False
+
+
 def ensure_llvm() -> None:
     """Point Dr.Jit at a usable LLVM, or raise UserError with the fix.
 
-    A user-set ``DRJIT_LIBLLVM_PATH`` is trusted as long as the file exists.
+    A user-set ``DRJIT_LIBLLVM_PATH`` is trusted as long as it is a shared
+    library whose name does not say it is older than ``MIN_LLVM``.
     """
     user_path = os.environ.get("DRJIT_LIBLLVM_PATH")
     if user_path:
@@ -80,6 +94,8 @@ def ensure_llvm() -> None:
         version = _llvm_major(user_path)
         if version is not None and version < MIN_LLVM:
             raise UserError(f"DRJIT_LIBLLVM_PATH={user_path} is LLVM {version}; " + LLVM_FIX)
+        if not _is_shared_library(user_path):  # Dr.Jit would print its loader's errors, then a wrong fix
+            raise UserError(f"DRJIT_LIBLLVM_PATH={user_path} is not a shared library; " + LLVM_FIX)
         return
     path = find_llvm()
     if path is None:

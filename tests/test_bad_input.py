@@ -229,6 +229,13 @@ def test_old_llvm_named_by_the_user_is_refused(tmp_path):
     env = dict(os.environ, DRJIT_LIBLLVM_PATH=str(old), **LLVM_VARIANT)
     proc = subprocess.run([sys.executable, "-c", "import mitsuba_active"], capture_output=True, text=True, env=env)
     assert proc.returncode == 1 and "LLVM 15" in proc.stderr and "libllvm19" in proc.stderr
+    # A file that is no library at all: one line with the fix, not Dr.Jit's loader errors.
+    text = tmp_path / "libLLVM.so"
+    text.write_text("not a library\n")
+    env["DRJIT_LIBLLVM_PATH"] = str(text)
+    proc = subprocess.run([sys.executable, "-c", "import mitsuba_active"], capture_output=True, text=True, env=env)
+    assert proc.returncode == 1 and proc.stderr.count("\n") == 1, proc.stderr
+    assert "is not a shared library" in proc.stderr and "libllvm19" in proc.stderr
 
 
 @pytest.mark.parametrize("script, args, message", [
@@ -402,7 +409,10 @@ def test_plan_bad_numbers_and_names(spot_xml, tmp_path):
     out = tmp_path / "o"
     for args, needle in ([["--distance-weight", "-1"], "distance weight"],
                          [["--distance-weight", "inf"], "distance weight"],
-                         [["--candidates", "0"], "candidate view"]):
+                         [["--candidates", "0"], "candidate view"],
+                         # Sizes that would exhaust memory, or Dr.Jit's array sizes, before any progress.
+                         [["--resolution", "100000"], "100000x100000 pixels are too large"],
+                         [["--candidates", "100000000"], "more than a rig makes"]):
         code, text = run_cli("plan", spot_xml, "--out", out, *args)
         assert_one_line_error(code, text, needle)
         assert not out.exists()
@@ -533,3 +543,11 @@ def test_a_dataset_refuses_spp_and_notes_missing_frames(shared_data, tmp_path):
                          "--eval-steps", "5", "--resolution", "25", "--quiet", "--out", tmp_path / "b")
     assert code == 0, text
     assert "note: nerf_synthetic_mic has 25 held-out frames; --heldout 500 uses all of them" in text
+
+
+def test_scene_writes_only_an_xml_file(tmp_path, shared_data):
+    """A scene written as .ply would be XML in a mesh's name (and -o '' a folder's)."""
+    for target in (tmp_path / "x" / "spot.ply", ""):
+        code, text = run_cli("scene", shared_data / "meshes" / "spot.obj", "-o", target)
+        assert_one_line_error(code, text, "the scene file to write must end in .xml")
+    assert not (tmp_path / "x").exists()

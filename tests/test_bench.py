@@ -197,6 +197,9 @@ def test_suite_runs_in_worker_processes(tiny_suite, tmp_path):
     ("name = [", "malformed"),
     ("planer = ['rfe']\n[default]\nbudget = 4\n[[scenes]]\nmesh='x.obj'\n", "unknown keys default, planer"),
     ("planners = 'rfe'\n[[scenes]]\nmesh='x.obj'\n", "planners must be a list"),
+    # A scene's name makes its folders: it may not lead out of the suite's.
+    ("[[scenes]]\nname='../../escaped'\nmesh='x.obj'\n", "name '../../escaped' cannot be a folder's name"),
+    ("[[scenes]]\nname='..'\nmesh='x.obj'\n", "cannot be a folder's name"),
 ])
 def test_bad_suites(tmp_path, text, message):
     bad = tmp_path / "bad.toml"

@@ -84,3 +84,22 @@ def test_a_scene_without_lights_is_flagged(tmp_path):
     xml.write_text('<scene version="3.0.0"><shape type="sphere"/></scene>')
     with pytest.warns(UserWarning, match="no lights"):
         load_scene(xml)
+
+
+def test_large_renders_are_split_into_passes_of_fewer_samples(spot_xml, monkeypatch):
+    """Mitsuba traces a render's samples at once: past MAX_PASS_SAMPLES they
+    are rendered in passes and averaged, which estimates the same image."""
+    import mitsuba as mi
+
+    import mitsuba_active.groundtruth as gt
+
+    scene = load_scene(spot_xml)
+    cam = fibonacci_sphere(1, scene.center, 3.0 * scene.radius, width=24, height=24)[0]
+    whole = gt.render_rgb(scene.mi_scene, cam, spp=64, seed=1)
+    calls = []
+    render = mi.render
+    monkeypatch.setattr(mi, "render", lambda *a, **k: calls.append(k["spp"]) or render(*a, **k))
+    monkeypatch.setattr(gt, "MAX_PASS_SAMPLES", 24 * 24 * 20)
+    passes = gt.render_rgb(scene.mi_scene, cam, spp=64, seed=1)
+    assert calls == [20, 20, 20, 4] and passes.dtype == np.float32 and passes.shape == (24, 24, 3)
+    assert abs(passes.mean() - whole.mean()) < 0.01 and np.abs(passes - whole).mean() < 0.05

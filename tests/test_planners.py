@@ -165,6 +165,7 @@ def test_a_planner_of_ones_own_by_reference(tmp_path, monkeypatch):
     ("import numpy\n\nx = 1 / 0\n", "mine.py:Last", "mine.py: ZeroDivisionError: division by zero \\(line 3\\)"),
     ("def f(:\n", "mine.py:Last", "mine.py: SyntaxError: invalid syntax \\(line 1\\)$"),
     (PLANNER_FILE, "no_such_module_here:Last", "no module named 'no_such_module_here' for a planner"),
+    (PLANNER_FILE, "../run.sh:Last", "'../run.sh' is neither a planner file \\(FILE.py:CLASS\\) nor a module"),
     ("raise ValueError('first\\nsecond')\n", "mine.py:Last", "ValueError: first second \\(line 1\\)"),
     ("import helper_with_a_typo\n", "mine.py:Last", "ModuleNotFoundError: .*helper_with_a_typo.* \\(line 1\\)"),
     ("import broken_helper\n", "mine.py:Last",

@@ -36,6 +36,34 @@ def test_lights_floor_and_plain_colour(tmp_path, shared_data):
     # The floor is a platform a little wider than the object (which spans 1).
     assert 1.5 < scene.bbox_max[0] - scene.bbox_min[0] < 2.0
     assert len(scene.mi_scene.emitters()) == 4
+    # The automatic rig stays above the floor: from below, a view shows its underside only.
+    from mitsuba_active.cameras import scene_rigs
+
+    assert scene.floor and not load_scene(shared_data / "mitsuba" / "simple" / "scene.xml").floor
+    floor_height = scene.bbox_min @ scene.up
+    for cams in scene_rigs(scene, "auto", 40, 10):
+        assert min(c.position @ scene.up for c in cams) > floor_height
+
+
+def test_a_glb_meshs_own_texture_is_used(tmp_path, shared_data):
+    """glTF/GLB keep their texture in a PBR material's baseColorTexture, not in an OBJ material's image."""
+    import trimesh
+    from PIL import Image
+
+    mesh = trimesh.load(shared_data / "meshes" / "spot.obj", force="mesh")
+    texture = Image.open(shared_data / "meshes" / "spot_texture.png").convert("RGB")
+    mesh.visual = trimesh.visual.TextureVisuals(uv=mesh.visual.uv, image=texture)
+    mesh.export(tmp_path / "spot.glb")
+    xml = scene_from_mesh(tmp_path / "spot.glb", tmp_path / "out" / "spot.xml")
+    assert "bitmap" in xml.read_text()
+    written = np.asarray(Image.open(tmp_path / "out" / "spot_texture.png").convert("RGB"))
+    assert np.array_equal(written, np.asarray(texture))
+
+
+def test_a_text_mesh_that_is_not_utf8_reads(tmp_path, shared_data):
+    obj = tmp_path / "latin1.obj"
+    obj.write_bytes(b"# mod\xe8le\n" + (shared_data / "meshes" / "suzanne.obj").read_bytes())
+    assert load_scene(scene_from_mesh(obj, tmp_path / "s.xml")).bbox_max[0] > 0
 
 
 @pytest.mark.parametrize("rel,interior", [("mitsuba/simple/scene.xml", False), ("mitsuba/cbox/cbox.xml", True),

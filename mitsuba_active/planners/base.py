@@ -241,6 +241,8 @@ def _load_module(name: str):
     """An importable module holding a planner (imported once, as Python does)."""
     if name in _LOADED:
         return _LOADED[name][0]
+    if name.startswith(".") or not all(part.isidentifier() for part in name.split(".")):
+        raise UserError(f"'{name}' is neither a planner file (FILE.py:CLASS) nor a module (MODULE:CLASS)")
     try:
         module = importlib.import_module(name)
     except ModuleNotFoundError as exc:

@@ -551,3 +551,21 @@ def test_scene_writes_only_an_xml_file(tmp_path, shared_data):
         code, text = run_cli("scene", shared_data / "meshes" / "spot.obj", "-o", target)
         assert_one_line_error(code, text, "the scene file to write must end in .xml")
     assert not (tmp_path / "x").exists()
+
+
+def test_bench_refuses_lists_that_name_nothing(tmp_path):
+    """An empty --planners, --scenes or --seeds would otherwise mean all of them."""
+    suite = tmp_path / "s.toml"
+    suite.write_text("[[scenes]]\nxml = 'none.xml'\n")
+    for option in ("--planners", "--scenes", "--seeds"):
+        for value in ("", " , "):
+            code, text = run_cli("bench", suite, option, value, "--out", tmp_path / "b")
+            assert_one_line_error(code, text, f"{option} names none")
+    assert not (tmp_path / "b").exists()
+
+
+def test_image_sizes_must_be_whole_numbers_of_pixels(spot_xml):
+    from mitsuba_active.env import SceneSource
+
+    with pytest.raises(UserError, match="whole numbers of pixels, got 16.5x16.5"):
+        SceneSource.from_xml(spot_xml, n_candidates=4, n_heldout=1, resolution=16.5)

@@ -6,11 +6,15 @@ caller already chose an RGB autodiff variant or set
 Where it cannot run (no usable LLVM, no GPU for ``cuda_ad_rgb``) the import
 raises :class:`~mitsuba_active.errors.SetupError`, an ``ImportError`` whose
 message names the fix; uncaught, it ends the program with that one line.
+Ctrl-C during the import is held back until Mitsuba and Dr.Jit have loaded
+(an interrupted extension import fails in unrelated ways), then raised;
+uncaught, it ends the program with "mitsuba-active: interrupted".
 """
 
 import sys
 
 from .errors import SetupError, UserError
+from .interrupts import interruptible_imports
 from .variant import set_variant
 
 __version__ = "0.1.0"
@@ -26,18 +30,18 @@ def _one_line_setup_error(exc_type, exc, tb, _previous=sys.excepthook):
 
 
 try:
-    set_variant()
+    with interruptible_imports():
+        set_variant()
+        try:  # Mitsuba plugins (the "radiance_field" integrator): cheap, and never fatal
+            from .plugins import register as _register_plugins
+
+            _register_plugins()
+        except Exception as exc:  # pragma: no cover
+            import warnings
+
+            warnings.warn(f"mitsuba-active: Mitsuba plugins not registered ({exc})")
 except UserError as exc:
     sys.excepthook = _one_line_setup_error
     raise SetupError(str(exc)) from None
-
-try:  # Mitsuba plugins (the "radiance_field" integrator): cheap, and never fatal
-    from .plugins import register as _register_plugins
-
-    _register_plugins()
-except Exception as exc:  # pragma: no cover
-    import warnings
-
-    warnings.warn(f"mitsuba-active: Mitsuba plugins not registered ({exc})")
 
 __all__ = ["SetupError", "UserError", "set_variant", "__version__"]

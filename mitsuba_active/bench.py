@@ -37,7 +37,7 @@ import numpy as np
 
 from .checks import setting_value
 from .errors import UserError
-from .imageio_utils import atomic_write
+from .imageio_utils import replaced_folder
 from .metrics import iqm, standard_error
 
 SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture")
@@ -556,48 +556,46 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
                 for v in views:
                     cell[f"{metric}@{v}"] = summarize([metric_at(r, metric, v) for r in recs])
             summary["cells"].append(cell)
-    report_dir.mkdir(parents=True, exist_ok=True)
-    summary["mean_over_scenes"] = {metric: scene_means(summary, scenes, planners, metric) for metric in METRICS}
-    for metric, (title, _) in METRICS.items():
-        md, csv_rows = _table(summary, scenes, planners, metric, title)
-        with atomic_write(report_dir / f"table_{metric}.md") as tmp:
-            tmp.write_text(md)
-        with atomic_write(report_dir / f"table_{metric}.csv") as tmp:
-            tmp.write_text("\n".join(",".join(map(str, r)) for r in csv_rows) + "\n")
-    with atomic_write(report_dir / "table_mean.md") as tmp:
-        tmp.write_text("\n".join(_mean_table(summary["mean_over_scenes"][m], planners, *METRICS[m], views=views)
-                                 for m in METRICS))
-    with atomic_write(report_dir / "results.json") as tmp:
-        tmp.write_text(json.dumps(summary, indent=1))
-    # Plots: per scene, IQM over seeds with a +-SE band; and one summary over scenes.
-    overall: dict = {}
-    for scene in scenes:
-        series, bands = {}, {}
-        for planner, recs in data[scene].items():
-            counts = sorted({m["views"] for r in recs for m in r["metrics"]})
-            rows, lo, hi = [], {}, {}
-            for c in counts:
-                row = {"views": c}
-                for metric in ("psnr", "ssim", "distance_error"):
-                    s = summarize([metric_at(r, metric, c) for r in recs])
-                    row[metric] = s["iqm"]
-                    if s["iqm"] is not None:
-                        lo.setdefault(metric, []).append(s["iqm"] - s["se"])
-                        hi.setdefault(metric, []).append(s["iqm"] + s["se"])
-                rows.append(row)
-            series[planner] = rows
-            bands[planner] = {m: (lo[m], hi[m]) for m in lo if len(lo[m]) == len(counts)}
-            for row in rows:
-                if row["psnr"] is not None:
-                    overall.setdefault(planner, {}).setdefault(row["views"], []).append(row["psnr"])
-        folder = report_dir / "plots" / scene
-        folder.mkdir(parents=True, exist_ok=True)
-        plot_metrics(series, folder, title=scene, bands=bands)
-    mean_series = {p: [{"views": v, "psnr": float(np.mean(x))} for v, x in sorted(d.items())]
-                   for p, d in overall.items()}
-    if mean_series:
-        (report_dir / "plots" / "summary").mkdir(parents=True, exist_ok=True)
-        plot_metrics(mean_series, report_dir / "plots" / "summary", title=f"{suite.name}: mean over scenes")
+    # The report is written whole into a new folder that then replaces the earlier one:
+    # no half-written report after an interruption, and no plots of scenes it no longer covers.
+    with replaced_folder(report_dir) as folder:
+        summary["mean_over_scenes"] = {metric: scene_means(summary, scenes, planners, metric) for metric in METRICS}
+        for metric, (title, _) in METRICS.items():
+            md, csv_rows = _table(summary, scenes, planners, metric, title)
+            (folder / f"table_{metric}.md").write_text(md)
+            (folder / f"table_{metric}.csv").write_text("\n".join(",".join(map(str, r)) for r in csv_rows) + "\n")
+        (folder / "table_mean.md").write_text("\n".join(
+            _mean_table(summary["mean_over_scenes"][m], planners, *METRICS[m], views=views) for m in METRICS))
+        (folder / "results.json").write_text(json.dumps(summary, indent=1))
+        # Plots: per scene, IQM over seeds with a +-SE band; and one summary over scenes.
+        overall: dict = {}
+        for scene in scenes:
+            series, bands = {}, {}
+            for planner, recs in data[scene].items():
+                counts = sorted({m["views"] for r in recs for m in r["metrics"]})
+                rows, lo, hi = [], {}, {}
+                for c in counts:
+                    row = {"views": c}
+                    for metric in ("psnr", "ssim", "distance_error"):
+                        s = summarize([metric_at(r, metric, c) for r in recs])
+                        row[metric] = s["iqm"]
+                        if s["iqm"] is not None:
+                            lo.setdefault(metric, []).append(s["iqm"] - s["se"])
+                            hi.setdefault(metric, []).append(s["iqm"] + s["se"])
+                    rows.append(row)
+                series[planner] = rows
+                bands[planner] = {m: (lo[m], hi[m]) for m in lo if len(lo[m]) == len(counts)}
+                for row in rows:
+                    if row["psnr"] is not None:
+                        overall.setdefault(planner, {}).setdefault(row["views"], []).append(row["psnr"])
+            scene_plots = folder / "plots" / scene
+            scene_plots.mkdir(parents=True, exist_ok=True)
+            plot_metrics(series, scene_plots, title=scene, bands=bands)
+        mean_series = {p: [{"views": v, "psnr": float(np.mean(x))} for v, x in sorted(d.items())]
+                       for p, d in overall.items()}
+        if mean_series:
+            (folder / "plots" / "summary").mkdir(parents=True, exist_ok=True)
+            plot_metrics(mean_series, folder / "plots" / "summary", title=f"{suite.name}: mean over scenes")
     return summary
 
 

@@ -9,18 +9,25 @@ from __future__ import annotations
 
 import functools
 import json
+import os
+import re
+import secrets
+import shutil
 import signal
 import sys
 import threading
 import warnings
 from pathlib import Path
 
-import click
-from click.core import ParameterSource
+from .interrupts import interruptible_imports, interrupts_deferred
 
-from .errors import UserError
-from .imageio_utils import folder_name, new_entries, remove_new
-from .scenes import BUNDLED_SCENE
+with interruptible_imports():  # click and numpy load here, after the package's own imports
+    import click
+    from click.core import ParameterSource
+
+    from .errors import UserError
+    from .imageio_utils import folder_name, new_entries, remove_new
+    from .scenes import BUNDLED_SCENE
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
@@ -47,6 +54,29 @@ def _os_error_line(exc: OSError) -> str:
     return f"{where}{exc.strerror or exc}"
 
 
+def _load_libraries() -> None:
+    """Import the libraries the commands use, with Ctrl-C held back (see
+    :mod:`.interrupts`): an interrupt then stops the command cleanly, not an
+    import halfway (trimesh's imports swallow it, and a swallowed interrupt
+    ends the process by SIGINT after a successful command)."""
+    import imageio.v3  # noqa: F401
+    import OpenEXR  # noqa: F401
+    import tqdm  # noqa: F401
+    import trimesh  # noqa: F401
+
+    from . import bench, export, run, scene  # noqa: F401
+    from .report import _plt
+
+    _plt()  # matplotlib with its file-only backend
+
+
+def _close_progress_bars() -> None:
+    """Close the progress bars an interruption left open, so that the next message starts a line of its own."""
+    tqdm = sys.modules.get("tqdm")
+    for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ())):
+        bar.close()
+
+
 def _one_line_errors(fn):
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -56,6 +86,8 @@ def _one_line_errors(fn):
         try:
             with warnings.catch_warnings():
                 warnings.showwarning = _show_warning
+                with interrupts_deferred():
+                    _load_libraries()
                 return fn(*args, **kwargs)
         except UserError as exc:
             click.echo(f"mitsuba-active: error: {exc}", err=True)
@@ -64,6 +96,7 @@ def _one_line_errors(fn):
             click.echo(f"mitsuba-active: error: {_os_error_line(exc)}", err=True)
             sys.exit(2)
         except KeyboardInterrupt:
+            _close_progress_bars()
             click.echo("mitsuba-active: interrupted", err=True)
             # An interrupt that landed inside exec() of a source string (dataclasses
             # make their methods so, during a late import) leaves CPython's flag for
@@ -126,6 +159,12 @@ def _rig_options(fn):
     return fn
 
 
+def _check_rig_options(rig: str) -> None:
+    """UserError for a rig option given on the command line that the rig ignores."""
+    if rig == "xml" and "n_candidates" in _given_options():
+        raise UserError("--candidates does not apply to --rig xml: the scene's own sensors are the candidates")
+
+
 @main.command()
 @click.argument("scene_xml", required=False, type=click.Path(dir_okay=False))
 @click.option("-o", "--output", "out", required=True, type=click.Path(file_okay=False), help="Output folder.")
@@ -141,8 +180,9 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
     from tqdm import tqdm
 
     from .env import SceneSource
-    from .imageio_utils import atomic_write, colorize, srgb_to_linear, write_exr, write_png
+    from .imageio_utils import colorize, srgb_to_linear, write_exr, write_png
 
+    _check_rig_options(rig)
     source = SceneSource.from_xml(scene_xml or BUNDLED_SCENE, rig, n_candidates, n_heldout, resolution, fov,
                                   spp=spp)
     cams = source.candidates if split == "candidates" else source.heldout
@@ -152,23 +192,51 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
         cams = cams[:views]
     out = Path(out)
     new = new_entries(out)
-    out.mkdir(parents=True, exist_ok=True)
+    # Views are rendered into a hidden folder and moved in at the end, so that
+    # an interrupted render leaves an earlier render in OUT as it was.
+    stage = out / f".render-{secrets.token_hex(6)}"
     records = []
     try:
+        stage.mkdir(parents=True)
         for i, cam in enumerate(tqdm(cams, desc="rendering", unit="view")):
             v = source.groundtruth.render(cam)
             stem = f"{split[:4]}_{i:03d}"
-            write_exr(out / f"{stem}.exr", {"RGB": srgb_to_linear(v.rgb), "Z": v.distance})
-            write_png(out / f"{stem}.png", v.rgb)
-            write_png(out / f"{stem}_distance.png", colorize(v.distance, v.mask))
+            write_exr(stage / f"{stem}.exr", {"RGB": srgb_to_linear(v.rgb), "Z": v.distance})
+            write_png(stage / f"{stem}.png", v.rgb)
+            write_png(stage / f"{stem}_distance.png", colorize(v.distance, v.mask))
             records.append({"file": f"{stem}.png", **cam.to_dict(), "intrinsics": cam.intrinsics().tolist()})
-        with atomic_write(out / "cameras.json") as tmp:
-            tmp.write_text(json.dumps({"scene": str(source.scene.path), "split": split, "views": records},
-                                      indent=1))
+        (stage / "cameras.json").write_text(json.dumps({"scene": str(source.scene.path), "split": split,
+                                                        "views": records}, indent=1))
+        earlier = _rendered_files(out / "cameras.json")
+        written = {p.name for p in stage.iterdir()} - {"cameras.json"}
+        with interrupts_deferred():  # the views, their cameras.json, then the earlier render's other views
+            for name in sorted(written):
+                os.replace(stage / name, out / name)
+            os.replace(stage / "cameras.json", out / "cameras.json")
+            for name in sorted(earlier - written):
+                (out / name).unlink(missing_ok=True)
     except BaseException:
         remove_new(out, *new)  # views without their cameras.json are no use to anyone
         raise
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
     click.echo(f"wrote {len(cams)} view{'' if len(cams) == 1 else 's'} to {out}")
+
+
+#: The files ``render`` writes for a view: its EXR, its PNG and the PNG of its distances.
+_RENDERED = re.compile(r"(cand|held)_\d{3,}(\.exr|\.png|_distance\.png)")
+
+
+def _rendered_files(cameras_json: Path) -> set[str]:
+    """The files of the render that wrote ``cameras_json`` (only names that ``render`` writes,
+    so no other file is ever removed); none if there is no such render."""
+    try:
+        views = json.loads(cameras_json.read_text()).get("views", [])
+        stems = {Path(v["file"]).stem for v in views}
+    except (OSError, ValueError, AttributeError, KeyError, TypeError):
+        return set()
+    names = {stem + end for stem in stems if isinstance(stem, str) for end in (".exr", ".png", "_distance.png")}
+    return {n for n in names if _RENDERED.fullmatch(n)}
 
 
 def _parse_options(items) -> dict:
@@ -239,6 +307,7 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
 
     scene_path = str(scene_path or BUNDLED_SCENE)
     given = _given_options()
+    _check_rig_options(rig)
     if planner != "rfe" and "score_form" in given:
         raise UserError(f"--score applies to the rfe planner only, not to {planner}")
     parsed = _parse_options(planner_option)

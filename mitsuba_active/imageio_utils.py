@@ -2,7 +2,8 @@
 
 Every writer goes through :func:`atomic_write`: the file appears whole under
 its final name or not at all, so an interrupted run leaves nothing half-written.
-:func:`new_entries` and :func:`remove_new` undo what a failed command added.
+:func:`replaced_folder` replaces a folder whole; :func:`new_entries` and
+:func:`remove_new` undo what a failed command added.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import shutil
 from pathlib import Path
 
 import numpy as np
+
+from .interrupts import interrupts_deferred
 
 
 @contextlib.contextmanager
@@ -34,6 +37,28 @@ def atomic_write(path, suffix=""):
     finally:
         if os.path.lexists(tmp):
             os.unlink(tmp)
+
+
+@contextlib.contextmanager
+def replaced_folder(path):
+    """Yield a new, empty folder beside ``path`` for the caller to fill; on
+    success it takes the place of ``path`` and everything ``path`` held,
+    otherwise it is removed. Ctrl-C is held back during the swap, so that
+    ``path`` is always whole: the earlier folder or the new one.
+    """
+    path = Path(path)
+    stage = path.with_name(f".{path.name}.{secrets.token_hex(6)}")
+    earlier = path.with_name(f"{stage.name}.old")
+    try:
+        stage.mkdir(parents=True)
+        yield stage
+        with interrupts_deferred():
+            if os.path.lexists(path):
+                os.replace(path, earlier)
+            os.replace(stage, path)
+    finally:
+        for p in (stage, earlier):
+            shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
 
 
 def new_entries(out: Path):

@@ -535,6 +535,16 @@ def test_plan_options_that_do_not_apply_are_refused(spot_xml, tmp_path, args, ne
     assert not out.exists()
 
 
+@pytest.mark.parametrize("command", ["plan", "render"])
+def test_candidates_do_not_apply_to_the_xml_rig(spot_xml, tmp_path, command):
+    """The XML's own sensors are the candidates: --candidates would be recorded but never used."""
+    out = tmp_path / "o"
+    code, text = run_cli(command, spot_xml, "--rig", "xml", "--candidates", "50",
+                         *(["--out", out] if command == "plan" else ["-o", out]))
+    assert_one_line_error(code, text, "--candidates does not apply to --rig xml")
+    assert not out.exists()
+
+
 def test_a_dataset_refuses_spp_and_notes_missing_frames(shared_data, tmp_path):
     mic = shared_data / "datasets" / "nerf_synthetic_mic"
     code, text = run_cli("plan", mic, "--spp", "4", "--out", tmp_path / "a")
@@ -569,3 +579,27 @@ def test_image_sizes_must_be_whole_numbers_of_pixels(spot_xml):
 
     with pytest.raises(UserError, match="whole numbers of pixels, got 16.5x16.5"):
         SceneSource.from_xml(spot_xml, n_candidates=4, n_heldout=1, resolution=16.5)
+
+
+@pytest.mark.parametrize("module,importer", [("mitsuba", "mitsuba_active"), ("click", "mitsuba_active.cli")])
+def test_ctrl_c_while_libraries_load_is_one_line(tmp_path, module, importer):
+    """Ctrl-C while Dr.Jit and Mitsuba (or the command line's libraries) load
+    is held back until they have loaded: then one line, and the process ends by
+    SIGINT, not by an unrelated error inside a half-loaded extension."""
+    import signal
+
+    script = (
+        "import os, signal, sys\n\n\n"
+        "class InterruptOnImport:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        f"        if name == {module!r}:\n"
+        "            sys.meta_path.remove(self)\n"
+        "            os.kill(os.getpid(), signal.SIGINT)\n"
+        "        return None\n\n\n"
+        "sys.meta_path.insert(0, InterruptOnImport())\n"
+        f"import {importer}\n"
+        "print('imported')\n")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path,
+                          env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
+    assert proc.returncode == -signal.SIGINT and proc.stderr == "mitsuba-active: interrupted\n", proc.stderr
+    assert proc.stdout == ""

@@ -172,6 +172,11 @@ def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
     res = CliRunner().invoke(main, ["bench", str(tiny_suite), "--out", str(out), "--seeds", "0,1", "--report-only"])
     assert res.exit_code == 0 and f"covers {len(summary['cells'])} of the suite's {summary['runs']} runs" in res.output
     assert not list(out.rglob("*seed1*"))
+    # A report of one scene replaces the earlier report whole: no plots of the other scene stay.
+    run_suite(tiny_suite, out, "quick", scenes=["simple"], progress=False, report_only=True)
+    assert sorted(p.name for p in (report / "plots").iterdir()) == ["simple", "summary"]
+    assert "ball" not in (report / "table_psnr.md").read_text()
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
     # With nothing finished (seed 2 alone) the report there stays as it was.
     table = (report / "table_psnr.md").read_text()
     summary = run_suite(tiny_suite, out, "quick", seeds=[2], progress=False, report_only=True)

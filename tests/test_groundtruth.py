@@ -103,3 +103,41 @@ def test_large_renders_are_split_into_passes_of_fewer_samples(spot_xml, monkeypa
     passes = gt.render_rgb(scene.mi_scene, cam, spp=64, seed=1)
     assert calls == [20, 20, 20, 4] and passes.dtype == np.float32 and passes.shape == (24, 24, 3)
     assert abs(passes.mean() - whole.mean()) < 0.01 and np.abs(passes - whole).mean() < 0.05
+
+
+def test_render_command_replaces_an_earlier_render_whole(spot_xml, tmp_path, monkeypatch):
+    """A render over an earlier one leaves only its own views (and the user's
+    files); an interrupted render leaves the earlier one as it was."""
+    from click.testing import CliRunner
+
+    import mitsuba_active.imageio_utils as imageio_utils
+    from mitsuba_active.cli import main
+
+    out = tmp_path / "views"
+    tiny = ["--resolution", "8", "--spp", "1", "--candidates", "4", "--heldout", "1"]
+
+    def render(*args):
+        result = CliRunner().invoke(main, ["render", str(spot_xml), "-o", str(out), *tiny, *args])
+        return result.exit_code, result.output
+
+    assert render()[0] == 0
+    (out / "notes.txt").write_text("mine")
+    assert render("--views", "2")[0] == 0
+    names = sorted(p.name for p in out.iterdir())
+    assert names == ["cameras.json", "cand_000.exr", "cand_000.png", "cand_000_distance.png",
+                     "cand_001.exr", "cand_001.png", "cand_001_distance.png", "notes.txt"], names
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+
+    written = []
+    write_png = imageio_utils.write_png
+
+    def interrupted_at_the_second_view(path, img):
+        written.append(path)
+        if len(written) == 3:
+            raise KeyboardInterrupt
+        write_png(path, img)
+
+    monkeypatch.setattr(imageio_utils, "write_png", interrupted_at_the_second_view)
+    code, text = render()
+    assert code == 130 and "\nmitsuba-active: interrupted\n" in text, text  # on a line of its own
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before

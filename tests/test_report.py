@@ -46,3 +46,22 @@ def test_atomic_write_leaves_the_file_whole_or_absent(tmp_path):
     mask = os.umask(0)
     os.umask(mask)
     assert target.stat().st_mode & 0o777 == 0o666 & ~mask  # the usual permissions, not a temp file's 0600
+
+
+def test_a_replaced_folder_is_whole_before_and_after(tmp_path):
+    from mitsuba_active.imageio_utils import replaced_folder
+
+    target = tmp_path / "report"
+    target.mkdir()
+    (target / "old.md").write_text("old")
+    with pytest.raises(KeyboardInterrupt):
+        with replaced_folder(target) as folder:
+            (folder / "new.md").write_text("half")
+            raise KeyboardInterrupt
+    assert [p.name for p in tmp_path.iterdir()] == ["report"] and [p.name for p in target.iterdir()] == ["old.md"]
+    with replaced_folder(target) as folder:
+        (folder / "new.md").write_text("new")
+    assert [p.name for p in tmp_path.iterdir()] == ["report"] and [p.name for p in target.iterdir()] == ["new.md"]
+    with replaced_folder(tmp_path / "fresh" / "report") as folder:  # a folder that was not there
+        (folder / "a.md").write_text("a")
+    assert (tmp_path / "fresh" / "report" / "a.md").read_text() == "a"

@@ -30,7 +30,7 @@ import signal
 import threading
 import time
 import tomllib
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -42,8 +42,9 @@ from .metrics import iqm, standard_error
 
 SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture")
 
-#: Settings of the two profiles. ``quick`` finishes the bundled suite's
-#: subset in minutes on two cores; ``full`` uses paper-like settings.
+#: Settings of the two profiles. ``quick`` runs the whole suite with one seed,
+#: small images and short training, in minutes on two cores; ``full`` uses
+#: paper-like settings and five seeds.
 PROFILES = {
     "quick": dict(seeds=[0], resolution=32, candidates=30, heldout=8, spp=16, ensemble=2,
                   initial_steps=150, steps_per_view=30, eval_steps=600, rays_per_candidate=64,
@@ -504,6 +505,26 @@ def collect(jobs: list[Job]) -> dict:
     return out
 
 
+def unreported_seeds(jobs: list[Job]) -> list[int]:
+    """Seeds of runs in the jobs' folders that finished with the jobs' settings
+    (but their seed) and that the jobs leave out: a suite run with
+    ``--seeds 0,1`` reported without them."""
+    asked = {job.seed for job in jobs}
+    found = set()
+    for job in jobs:
+        folder = Path(job.out)
+        stem = folder.name[:folder.name.rindex("-seed") + len("-seed")]
+        for other in folder.parent.glob(f"{stem}*"):
+            tail = other.name[len(stem):]
+            if not tail.isdigit() or int(tail) in asked or int(tail) in found:
+                continue
+            seed = int(tail)
+            twin = replace(job, seed=seed, out=str(other), config={**job.config, "seed": seed})
+            if finished_record(twin) is not None:
+                found.add(seed)
+    return sorted(found)
+
+
 def metric_at(rec: dict, metric: str, views: int):
     for m in rec["metrics"]:
         if m["views"] == views and m.get(metric) is not None:
@@ -519,14 +540,15 @@ def summarize(values) -> dict:
 def table_views(jobs: list[Job]) -> tuple:
     """The view counts the tables report: :data:`TABLE_VIEWS` when every job
     evaluates them, else the largest count every job evaluates and the one
-    nearest half of it (a suite with another budget or other counts)."""
+    nearest half of it, the larger of two as near (a suite with another budget
+    or other counts: of 2, 4 and 6 views, 4 and 6)."""
     from .run import RunConfig
 
     common = set.intersection(*[set(RunConfig(**j.config).report_counts()) for j in jobs]) if jobs else set()
     if set(TABLE_VIEWS) <= common or not common:
         return TABLE_VIEWS
     last = max(common)
-    rest = sorted(common - {last}, key=lambda v: (abs(v - last / 2), v))
+    rest = sorted(common - {last}, key=lambda v: (abs(v - last / 2), -v))
     return (rest[0], last) if rest else (last,)
 
 
@@ -536,6 +558,7 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
     ``overrides`` (the command line's ``--set``) are recorded in ``results.json``.
     With no finished run, nothing is written (an earlier report stays)."""
     from .report import plot_metrics
+    from .run import MIN_FIT_PSNR
 
     data = collect(jobs)
     scenes = [s.name for s in suite.scenes if s.name in data]
@@ -544,6 +567,14 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
     summary = {"suite": suite.name, "profile": profile, "overrides": overrides or {},
                "table_views": list(views), "runs": len(jobs),
                "runs_reported": sum(len(recs) for by_planner in data.values() for recs in by_planner.values()),
+               "unreported_seeds": unreported_seeds(jobs),
+               # Runs whose evaluation fields had too few steps to fit their own views.
+               "short_training": sum(any(m.get("fit_psnr", MIN_FIT_PSNR) < MIN_FIT_PSNR for m in r["metrics"])
+                                     for by_planner in data.values() for recs in by_planner.values() for r in recs),
+               # Finished runs are kept across upgrades: which versions made the reported ones.
+               "versions": [json.loads(v) for v in sorted({json.dumps(r.get("versions"), sort_keys=True)
+                                                           for by_planner in data.values()
+                                                           for recs in by_planner.values() for r in recs})],
                "cells": []}
     if not data:  # nothing finished: keep whatever report is there
         return summary
@@ -618,11 +649,11 @@ def _table(summary: dict, scenes, planners, metric: str, title: str):
     per_cell = len(counts) > 1
     n = max(counts, default=0)
     if per_cell:
-        stat = "Interquartile mean ± standard error over seeds (n per cell)"
+        stat = "Interquartile mean ± standard error of the mean over seeds (n per cell)"
     elif n == 1:
         stat = "One seed (no standard error)"
     else:
-        stat = f"Interquartile mean ± standard error over {n} seeds"
+        stat = f"Interquartile mean ± standard error of the mean over {n} seeds"
     head = ["planner"] + [f"{s} @{v}" for s in scenes for v in views] + ["wall time (s)"]
     lines = [f"## {title}", "", f"{stat}, at " + " and ".join(map(str, views)) + " views captured.", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]

@@ -450,6 +450,10 @@ def bench(suite, out, profile, workers, seeds, planners, scenes, overrides, repo
     out = Path(out)
     summary = run_suite(suite, out, profile, workers, seed_list, split(planners), split(scenes),
                         progress=not quiet, report_only=report_only, overrides=parse_overrides(overrides))
+    if summary["unreported_seeds"]:
+        others = ",".join(map(str, summary["unreported_seeds"]))
+        click.echo(f"note: {out} also holds finished runs of seed{'s' if ',' in others else ''} {others}, "
+                   "which this report leaves out: name every seed to report with --seeds", err=True)
     if not summary["cells"]:
         click.echo(f"note: no finished runs with these settings in {out} yet: no report written", err=True)
     else:
@@ -457,8 +461,16 @@ def bench(suite, out, profile, workers, seeds, planners, scenes, overrides, repo
             # Only --report-only gets here: a suite that runs finishes every job or stops with an error.
             click.echo(f"note: the report covers {summary['runs_reported']} of the suite's {summary['runs']} runs; "
                        "the others have not finished with these settings and planner code", err=True)
-        click.echo(f"tables and plots in {out / 'report'}")
+        if summary["short_training"]:
+            from .run import MIN_FIT_PSNR
 
+            click.echo(f"note: in {summary['short_training']} of the reported runs the evaluation field fits its own "
+                       f"training views below {MIN_FIT_PSNR:g} dB: raise eval_steps for scores that compare the "
+                       "planners", err=True)
+        if len(summary["versions"]) > 1:
+            click.echo(f"note: the reported runs were made with {len(summary['versions'])} different versions of "
+                       "mitsuba-active, Mitsuba or Dr.Jit (see versions in report/results.json)", err=True)
+        click.echo(f"tables and plots in {out / 'report'}")
 
 if __name__ == "__main__":
     main()

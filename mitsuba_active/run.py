@@ -21,6 +21,7 @@ import json
 import math
 import os
 import time
+import warnings
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
@@ -159,7 +160,8 @@ class RunConfig:
                            cache_dir=cache_dir)
 
     def report_counts(self) -> list[int]:
-        """View counts to evaluate: the requested ones within the budget, and the budget itself."""
+        """View counts to evaluate: the requested ones within the budget, and the budget
+        itself, less those below the initial views (and 0)."""
         counts = sorted({int(v) for v in self.eval_views if 0 < int(v) <= self.budget} | {self.budget})
         return [c for c in counts if c >= max(self.initial_views, 1)]
 
@@ -202,6 +204,12 @@ SPARSE_VIEW_FIELD = {"n_levels": 2, "lr": 0.01}
 #: their initialisation, and where no training ray reaches, that is all they
 #: have: a visible spread is what makes them disagree about unobserved space.
 PLANNER_INIT_SCALE = 2.0
+
+#: Below this PSNR of an evaluation field on its own training views (dB),
+#: it has not trained long enough for its held-out scores to compare views:
+#: a run says so (at 50 steps of the defaults' 1500 the bundled scene's
+#: field fits its views to ~11 dB and scores ~11 dB held out, against 22 dB).
+MIN_FIT_PSNR = 20.0
 
 #: Distance-loss weight that ``plan`` suggests for rooms seen from inside.
 #: Trained on colour alone, the sparse-view field fills a room with fog;
@@ -276,6 +284,9 @@ def field_config(cfg: RunConfig, planner: bool = True):
     if unknown:
         raise UserError(f"unknown field option {', '.join(unknown)}; see FieldConfig (docs/field.md) for "
                         f"the options: {', '.join(sorted(known))}")
+    if "distance_weight" in cfg.field:  # two settings of one weight, and run.json would show the other
+        raise UserError("set the distance loss's weight as the run setting distance_weight (--distance-weight), "
+                        "not as the field option field.distance_weight")
     return FieldConfig(**{**base, **cfg.field})
 
 
@@ -297,11 +308,11 @@ def make_ensemble(source, cfg: RunConfig, n_members: int, seed: int, planner: bo
     return Ensemble(source.bbox_min, source.bbox_max, n_members=n_members, config=config, seed=seed)
 
 
-def train_on(ens, views: list[View], steps: int, progress: bool = False, reset_occupancy: bool = True) -> None:
+def train_on(ens, views: list[View], steps: int, progress: bool = False, reset_occupancy: bool = True) -> np.ndarray:
+    """Set the rays of ``views`` on ``ens`` and train it ``steps`` steps; returns the (steps,) losses."""
     r = view_rays(views)
     ens.set_rays(r["origins"], r["directions"], r["rgb"], r["distance"], r["hit"], reset_occupancy)
-    if steps > 0:
-        ens.train(steps, progress=progress)
+    return ens.train(steps, progress=progress) if steps > 0 else np.zeros(0)
 
 
 def predict_view(ens, camera) -> dict:
@@ -317,11 +328,15 @@ def predict_view(ens, camera) -> dict:
 def evaluate(source, views: list[View], cfg: RunConfig, progress: bool = False) -> tuple[dict, list[dict]]:
     """Train a fresh evaluation field on ``views``; score it on every held-out view.
 
-    Returns the metrics (means over held-out views) and the per-view predictions.
+    Returns the metrics (means over held-out views; ``fit_psnr``: the field's
+    PSNR on its own training rays over its last tenth of training steps) and
+    the per-view predictions.
     """
     t0 = time.perf_counter()
     field_ = make_ensemble(source, cfg, 1, seed=cfg.seed + 7919, planner=False)
-    train_on(field_, views, cfg.eval_steps, progress)
+    losses = train_on(field_, views, cfg.eval_steps, progress)
+    # How well the field fits its own training views (the last tenth of its steps).
+    fit_psnr = float(-10.0 * np.log10(max(np.mean(losses[-max(1, len(losses) // 10):]), 1e-10)))
     preds, p_list, s_list, d_list = [], [], [], []
     for i, cam in enumerate(source.heldout):
         gt = source.heldout_view(i)
@@ -332,7 +347,8 @@ def evaluate(source, views: list[View], cfg: RunConfig, progress: bool = False) 
         d_list.append(distance_error(pred["distance"], gt.distance, gt.mask))
     # SSIM needs 11x11 pixels and the distance error needs hits: without them, None (null in run.json).
     metrics = {"views": len(views), "psnr": float(np.mean(p_list)), "ssim": _mean_or_none(s_list),
-               "distance_error": _mean_or_none(d_list), "eval_seconds": round(time.perf_counter() - t0, 3)}
+               "distance_error": _mean_or_none(d_list), "fit_psnr": round(fit_psnr, 2),
+               "eval_seconds": round(time.perf_counter() - t0, 3)}
     return metrics, preds
 
 
@@ -422,11 +438,23 @@ class Run:
         self.rng = planner_rng(cfg.seed)
         self.record = None
         self.ensemble = None
+        self._warned_fit = False
 
     # -- persistence --------------------------------------------------------
     @property
     def record_path(self) -> Path:
         return self.out / "run.json"
+
+    @property
+    def versions(self) -> dict:
+        """The versions this run is made with: the package's, Mitsuba's, Dr.Jit's and the variant."""
+        import drjit as dr
+        import mitsuba as mi
+
+        from . import __version__
+
+        return {"mitsuba_active": __version__, "mitsuba": mi.__version__, "drjit": dr.__version__,
+                "variant": mi.variant()}
 
     def _config_dict(self) -> dict:
         return json.loads(json.dumps(asdict(self.cfg), default=_json_default))
@@ -455,9 +483,16 @@ class Run:
                     or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):
                 raise UserError(f"{self.out} holds a run of a scene or dataset that has changed since; "
                                 "choose another run folder (--out)")
+            started = rec.get("versions", self.versions)  # records from before versions were kept: as now
+            if started != self.versions and not rec.get("finished"):
+                differ = [k for k in {**started, **self.versions} if started.get(k) != self.versions.get(k)]
+                warnings.warn(f"{self.out} was started with " + ", ".join(f"{k} {started.get(k)}" for k in differ)
+                              + "; it goes on with " + ", ".join(f"{k} {self.versions.get(k)}" for k in differ),
+                              stacklevel=2)
+                rec.setdefault("resumed_with", []).append(self.versions)
             self.record = rec
             return True
-        self.record = {"format": RUN_FORMAT, "config": self._config_dict(),
+        self.record = {"format": RUN_FORMAT, "versions": self.versions, "config": self._config_dict(),
                        "planner_options": self.planner.options(), "planner_digest": self.planner_digest,
                        "scene": self.source.name,
                        "bbox": [np.asarray(self.source.bbox_min, float).tolist(),
@@ -600,6 +635,12 @@ class Run:
                 dist = "n/a" if metrics["distance_error"] is None else f"{metrics['distance_error']:.2f}%"
                 ssim_ = "n/a" if metrics["ssim"] is None else f"{metrics['ssim']:.3f}"
                 self.log(f"  {count:3d} views: PSNR {metrics['psnr']:.2f} dB, SSIM {ssim_}, distance error {dist}")
+                if metrics["fit_psnr"] < MIN_FIT_PSNR and not self._warned_fit:
+                    self._warned_fit = True  # once a run: the later evaluations train as long
+                    self.log(f"note: the evaluation field fits its own {count} training views to only "
+                             f"{metrics['fit_psnr']:.1f} dB after {self.cfg.eval_steps} steps: its held-out "
+                             "scores say more about the training than about the views; raise eval_steps "
+                             f"(--eval-steps, default {RunConfig.eval_steps})")
                 self._save_record()
 
     # -- results ------------------------------------------------------------
@@ -641,7 +682,7 @@ class Run:
 
 
 def write_metrics_csv(path, metrics: list[dict]) -> None:
-    cols = ["views", "psnr", "ssim", "distance_error", "eval_seconds"]
+    cols = ["views", "psnr", "ssim", "distance_error", "fit_psnr", "eval_seconds"]
     with atomic_write(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=cols, extrasaction="ignore")
         w.writeheader()

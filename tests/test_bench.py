@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from mitsuba_active.bench import load_suite, run_suite
+from mitsuba_active.bench import load_suite, plan_jobs, run_suite, unreported_seeds
 from mitsuba_active.cli import main
 from mitsuba_active.errors import UserError
 from mitsuba_active.metrics import distance_error, iqm, psnr, ssim, standard_error
@@ -171,6 +171,19 @@ def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
     assert summary["runs"] == 2 * summary["runs_reported"] == 2 * len(summary["cells"])
     res = CliRunner().invoke(main, ["bench", str(tiny_suite), "--out", str(out), "--seeds", "0,1", "--report-only"])
     assert res.exit_code == 0 and f"covers {len(summary['cells'])} of the suite's {summary['runs']} runs" in res.output
+    # The tiny suite's 20 evaluation steps leave its fields unfit even for their own views.
+    assert f"in {summary['runs_reported']} of the reported runs the evaluation field fits" in res.output
+    # Reported with the profile's seed alone, the folder's other seed is named.
+    res = CliRunner().invoke(main, ["bench", str(tiny_suite), "--out", str(out), "--seeds", "1", "--report-only"])
+    assert res.exit_code == 0 and "holds finished runs of seed 0, which this report leaves out" in res.output
+    assert unreported_seeds(plan_jobs(load_suite(tiny_suite), out, "quick", seeds=[0, 1], author=False)) == []
+    # Runs kept across an upgrade are reported, and the mix of versions is named.
+    one = next(out.rglob("run.json"))
+    rec = json.loads(one.read_text())
+    rec["versions"]["drjit"] = "0.0.1"
+    one.write_text(json.dumps(rec))
+    res = CliRunner().invoke(main, ["bench", str(tiny_suite), "--out", str(out), "--report-only"])
+    assert res.exit_code == 0 and "made with 2 different versions" in res.output, res.output
     assert not list(out.rglob("*seed1*"))
     # A report of one scene replaces the earlier report whole: no plots of the other scene stay.
     run_suite(tiny_suite, out, "quick", scenes=["simple"], progress=False, report_only=True)
@@ -336,6 +349,7 @@ def test_set_overrides_win_over_the_suite_and_bad_ones_write_nothing(tmp_path, s
     assert job.config["field"] == {"batch_rays": 2048, "n_samples": 8, "lr": 0.02}
     assert (tmp_path / "out" / "scenes" / "ball" / "ball.xml").is_file()
     for bad, message in ((["field.lr=-1"], "lr must be > 0"), (["field.bogus=1"], "unknown field option"),
+                         (["field.distance_weight=10"], "not as the field option field.distance_weight"),
                          (["planner_options.lam=2"], "unknown option lam"), (["budget='x'"], "budget must be a whole number")):
         with pytest.raises(UserError, match=message):
             plan_jobs(suite, tmp_path / "bad", "quick", planners=["rfe"], overrides=parse_overrides(bad))
@@ -496,3 +510,18 @@ def test_a_failed_job_stops_the_workers_without_tracebacks(tiny_suite, tmp_path)
     assert proc.stderr.strip().splitlines() == [
         "mitsuba-active: error: the wrong.py:Wrong planner answered list: select(state, batch) must return "
         "(indices, scores): 1 candidate indices in [0, 8), and 8 scores or None"], proc.stderr
+
+
+def test_tables_report_the_largest_view_count_and_the_one_nearest_half_of_it():
+    from dataclasses import asdict
+
+    from mitsuba_active.bench import Job, table_views
+    from mitsuba_active.run import RunConfig
+
+    def jobs(budget, counts):
+        cfg = asdict(RunConfig(scene="s.xml", budget=budget, eval_views=counts))
+        return [Job("s", "even", 0, "s.xml", cfg, "o")]
+
+    assert table_views(jobs(20, [5, 10, 15, 20])) == (10, 20)
+    assert table_views(jobs(6, [2, 4, 6])) == (4, 6)  # 2 and 4 are as near 3: the later one says more
+    assert table_views(jobs(9, [2, 3, 9])) == (3, 9)

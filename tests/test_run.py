@@ -99,8 +99,14 @@ def test_interrupted_run_resumes_without_redoing_rounds(source, tmp_path, monkey
     # A view file cut short by the interruption is written again on resume.
     damaged = tmp_path / "cut" / "views" / "view_003.png"
     damaged.write_bytes(damaged.read_bytes()[:20])
+    # Started with another Mitsuba: the run goes on, and says so.
+    assert partial["versions"] == full["versions"] and set(full["versions"]) >= {"mitsuba_active", "mitsuba", "drjit"}
+    partial["versions"]["mitsuba"] = "0.0.1"
+    (tmp_path / "cut" / "run.json").write_text(json.dumps(partial))
     calls["n"] = 10
-    resumed = _run(source, tmp_path / "cut", planner="even", budget=6, eval_views=[3, 6])
+    with pytest.warns(UserWarning, match="was started with mitsuba 0.0.1; it goes on with mitsuba "):
+        resumed = _run(source, tmp_path / "cut", planner="even", budget=6, eval_views=[3, 6])
+    assert resumed["resumed_with"] == [full["versions"]]
     assert calls["n"] == 12  # only the two missing rounds ran
     assert resumed["captured"] == full["captured"]
     assert [m["views"] for m in resumed["metrics"]] == [3, 6]
@@ -353,3 +359,22 @@ class Masked(Planner):
     rec = json.loads((tmp_path / "r" / "run.json").read_text(), parse_constant=refuse)
     scores = rec["rounds"][0]["scores"]
     assert scores[0] is None and [s is None for s in scores[1:]] == [i in rec["captured"][:2] for i in range(1, 10)]
+
+
+def test_a_run_says_once_when_its_evaluation_field_did_not_train_long_enough(source, tmp_path):
+    """Too few evaluation steps leave the field unfit even for its own views:
+    its held-out scores then measure the training, and the run says so."""
+    from mitsuba_active.run import MIN_FIT_PSNR
+
+    def run(out, eval_steps):
+        lines = []
+        cfg = RunConfig(scene=str(source.scene.path), planner="even", **{**TINY, "eval_steps": eval_steps})
+        rec = Run(source, cfg, out, progress=False, log=lines.append).execute()
+        return rec, [ln for ln in lines if "evaluation field fits" in ln]
+
+    short, notes = run(tmp_path / "short", 5)
+    assert all(m["fit_psnr"] < MIN_FIT_PSNR for m in short["metrics"]) and len(notes) == 1, notes
+    assert "after 5 steps" in notes[0] and "raise eval_steps" in notes[0]
+    assert "fit_psnr" in (tmp_path / "short" / "metrics.csv").read_text().splitlines()[0]
+    trained, notes = run(tmp_path / "trained", 400)
+    assert all(m["fit_psnr"] > MIN_FIT_PSNR for m in trained["metrics"]) and notes == []

@@ -3,7 +3,8 @@
 A suite is a TOML file (see ``benchmarks/suites/shared.toml``)::
 
     name = "mine"
-    planners = ["random", "even", "rfe", "my_planners.py:MyPlanner"]   # a file beside the suite
+    planners = ["random", "even", "rfe", "my_planners.py:MyPlanner",   # a file beside the suite
+                { name = "rfe-log", planner = "rfe", options = { form = "log" } }]   # a variant
     [defaults]              # RunConfig fields for every scene
     candidates = 100
     [[scenes]]
@@ -37,7 +38,7 @@ import numpy as np
 
 from .checks import setting_value
 from .errors import UserError
-from .imageio_utils import replaced_folder
+from .imageio_utils import folder_name, replaced_folder
 from .metrics import iqm, standard_error
 
 SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture")
@@ -88,16 +89,27 @@ def _check_tables(path, where: str, settings: dict) -> None:
 
 
 @dataclass
+class SuitePlanner:
+    """A planner of a suite: its name in the tables and run folders, the
+    planner it runs (a registered name or a resolved ``FILE.py:CLASS``) and
+    options of its own (a variant: ``{ name = "rfe-log", planner = "rfe",
+    options = { form = "log" } }``)."""
+    name: str
+    ref: str
+    options: dict = field(default_factory=dict)
+
+
+@dataclass
 class Suite:
     name: str
-    planners: list
+    planners: list  # of SuitePlanner
     scenes: list
     defaults: dict
 
 
 def load_suite(path) -> Suite:
     """Parse and check a suite file; UserError on anything malformed."""
-    from .planners.base import planner_class, resolve_reference
+    from .planners.base import planner_class
     from .scene import SceneOptions
 
     path = Path(path)
@@ -112,14 +124,19 @@ def load_suite(path) -> Suite:
     if unknown:
         raise UserError(f"{path}: unknown keys {', '.join(sorted(unknown))}; a suite has name, planners, "
                         "[defaults] and [[scenes]]")
-    planners = data.get("planners", ["random", "even", "rfe"])
-    if not isinstance(planners, list) or not all(isinstance(p, str) for p in planners):
+    entries = data.get("planners", ["random", "even", "rfe"])
+    if not isinstance(entries, list):
         raise UserError(f"{path}: planners must be a list of names, e.g. planners = [\"even\", \"rfe\"]")
-    # A planner file is named relative to the suite, as its scenes are.
-    planners = [resolve_reference(p, path.parent) for p in planners]
+    planners = {}
+    for entry in entries:
+        p = _suite_planner(path, entry)
+        if p.name in planners and (planners[p.name].ref, planners[p.name].options) != (p.ref, p.options):
+            raise UserError(f"{path}: two planners are named {p.name}")
+        planners[p.name] = p  # a planner named twice is one planner
+    planners = list(planners.values())
     for p in planners:  # their options are checked with each job's settings
         try:
-            planner_class(p)
+            planner_class(p.ref)
         except UserError as exc:
             raise UserError(f"{path}: {exc}") from None
     defaults = data.get("defaults", {})
@@ -158,6 +175,27 @@ def load_suite(path) -> Suite:
     if len(set(names)) != len(names):
         raise UserError(f"{path}: scene names must be unique")
     return Suite(data.get("name", path.stem), planners, scenes, defaults)
+
+
+def _suite_planner(path: Path, entry) -> SuitePlanner:
+    """A suite's ``planners`` entry: a planner's name, or a table naming a variant."""
+    from .planners.base import planner_label, resolve_reference
+
+    # A planner file is named relative to the suite, as its scenes are.
+    if isinstance(entry, str):
+        ref = resolve_reference(entry, path.parent)
+        return SuitePlanner(planner_label(ref), ref)
+    example = '{ name = "rfe-log", planner = "rfe", options = { form = "log" } }'
+    if not isinstance(entry, dict):
+        raise UserError(f"{path}: a planners entry is a planner's name or a table such as {example}, got {entry!r}")
+    extra = set(entry) - {"name", "planner", "options"}
+    name, planner, options = entry.get("name"), entry.get("planner"), entry.get("options", {})
+    if extra or not isinstance(planner, str) or not isinstance(options, dict):
+        raise UserError(f"{path}: a planner variant is a table such as {example}, got {entry!r}")
+    # The name makes run folders and table rows.
+    if not isinstance(name, str) or not name or folder_name(name) != name or name in (".", ".."):
+        raise UserError(f"{path}: planner variant name {name!r}: use letters, digits, '-', '_' and '.'")
+    return SuitePlanner(name, resolve_reference(planner, path.parent), dict(options))
 
 
 def parse_overrides(items) -> dict:
@@ -218,7 +256,7 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
     ``author`` (reports only) the scenes are left as they are.
     """
     from .planners import make_planner, planner_label
-    from .planners.base import planner_digest, planner_folder, resolve_reference
+    from .planners.base import planner_digest, resolve_reference
     from .run import RunConfig, field_config
     from .scene import content_hash
 
@@ -233,17 +271,24 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
     # A seed or planner named twice is one run, not two in one folder.
     seeds = list(dict.fromkeys(seeds or prof["seeds"]))
     # The suite's planner files are named relative to it; a --planners entry
-    # is one of them (by the name its tables show) or relative to the current folder.
-    suite_refs = {planner_label(p): p for p in suite.planners}
-    planners = list(dict.fromkeys(suite_refs.get(planner_label(p)) or resolve_reference(p)
-                                  for p in planners or suite.planners))
+    # is one of its planners (by the name its tables show) or a planner
+    # named relative to the current folder.
+    suite_planners = {p.name: p for p in suite.planners}
+    chosen = {}
+    for name in planners or list(suite_planners):
+        p = suite_planners.get(planner_label(name))
+        if p is None:
+            ref = resolve_reference(name)
+            p = SuitePlanner(planner_label(ref), ref)
+        chosen.setdefault(p.name, p)
+    planners = list(chosen.values())
     folders = {}
     for p in planners:  # files of one name in two folders: their tables and run folders would mix
-        other = folders.setdefault(planner_folder(p).casefold(), p)
-        if other != p:
-            raise UserError(f"the planners {planner_label(other)} and {planner_label(p)} would share run folders "
-                            "and table rows; rename one of their files")
-    digests = {p: planner_digest(p) for p in planners}  # each file read once
+        other = folders.setdefault(folder_name(p.name).casefold(), p)
+        if other is not p:
+            raise UserError(f"the planners {other.name} and {p.name} would share run folders "
+                            "and table rows; rename one of them")
+    digests = {p.name: planner_digest(p.ref) for p in planners}  # each file read once
     prof.pop("seeds")
     jobs, meshes = [], {}
     for sc in suite.scenes:
@@ -256,7 +301,7 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
             for seed in seeds:
                 # The profile sets the effort; the suite's defaults, each scene's own
                 # settings and the command line's overrides win, in that order.
-                layers = (prof, suite.defaults, sc.run_options, overrides)
+                layers = (prof, suite.defaults, sc.run_options, {"planner_options": planner.options}, overrides)
                 settings = {"budget": 20, "eval_views": [5, 10, 15, 20]}
                 for layer in layers:
                     settings.update(layer)
@@ -264,17 +309,20 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                 for key in TABLE_KEYS:
                     settings[key] = {k: v for layer in layers for k, v in layer.get(key, {}).items()}
                 try:
-                    cfg = RunConfig(scene=str(xml), planner=planner, seed=int(seed), **settings)
+                    cfg = RunConfig(scene=str(xml), planner=planner.ref, seed=int(seed), **settings)
                     # A generated rig has as many candidates as asked for; the XML's own, as it has.
                     cfg.validate(None if cfg.rig == "xml" else cfg.candidates)
                 except UserError as exc:  # e.g. budget = "20"
                     raise UserError(f"scene '{sc.name}': {exc}") from None
                 # Options the runs would refuse, refused before anything is written.
-                make_planner(planner, **cfg.planner_options).check_ensemble_size(cfg.ensemble)
+                try:
+                    make_planner(planner.ref, **cfg.planner_options).check_ensemble_size(cfg.ensemble)
+                except UserError as exc:
+                    raise UserError(f"planner '{planner.name}': {exc}") from None
                 field_config(cfg)
-                jobs.append(Job(sc.name, planner_label(planner), int(seed), str(xml), asdict(cfg),
-                                str(out_dir / "runs" / sc.name / f"{planner_folder(planner)}-seed{seed}"),
-                                planner_digest=digests[planner]))
+                jobs.append(Job(sc.name, planner.name, int(seed), str(xml), asdict(cfg),
+                                str(out_dir / "runs" / sc.name / f"{folder_name(planner.name)}-seed{seed}"),
+                                planner_digest=digests[planner.name]))
     if author:
         for sc in suite.scenes:
             if sc.name in meshes:
@@ -314,7 +362,6 @@ def _author_suite_scene(sc, xml: Path, jobs: list[Job]) -> None:
 
 def _refuse_other_runs(jobs: list[Job]) -> None:
     """Refuse, before any run starts, a suite folder whose runs have other settings."""
-    from .planners.base import planner_folder
     from .run import config_differences, other_settings
 
     for job in jobs:
@@ -328,7 +375,7 @@ def _refuse_other_runs(jobs: list[Job]) -> None:
             suite_dir = Path(job.out).parent.parent.parent
             raise UserError(f"{suite_dir} holds runs made with another version of the planner's code "
                             f"({job.planner}); use another --out, undo the change, or remove its runs "
-                            f"({suite_dir / 'runs' / '*' / planner_folder(job.config['planner'])}-seed*)")
+                            f"({suite_dir / 'runs' / '*' / folder_name(job.planner)}-seed*)")
 
 
 def run_job(job: Job, threads: int | None = None) -> dict:
@@ -371,6 +418,9 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
                      overrides=overrides)
     if report_only:
         return write_report(suite, jobs, out_dir / "report", profile, overrides)
+    kept = sum(finished_record(job) is not None for job in jobs)
+    if kept:
+        log(f"{kept} of the suite's {len(jobs)} runs finished earlier with these settings: kept, not run again")
     threads = max(1, (os.cpu_count() or 1) // workers)
     bar = tqdm(total=len(jobs), desc=f"suite {suite.name}", unit="run", disable=not progress)
     try:
@@ -582,7 +632,8 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
         for planner in planners:
             recs = data[scene].get(planner, [])
             cell = {"scene": scene, "planner": planner, "seeds": len(recs),
-                    "wall_seconds": summarize([r.get("wall_seconds") for r in recs])}
+                    "wall_seconds": summarize([r.get("wall_seconds") for r in recs]),
+                    "planning_seconds": summarize([r.get("planning_seconds") for r in recs])}
             for metric in METRICS:
                 for v in views:
                     cell[f"{metric}@{v}"] = summarize([metric_at(r, metric, v) for r in recs])
@@ -654,21 +705,26 @@ def _table(summary: dict, scenes, planners, metric: str, title: str):
         stat = "One seed (no standard error)"
     else:
         stat = f"Interquartile mean ± standard error of the mean over {n} seeds"
-    head = ["planner"] + [f"{s} @{v}" for s in scenes for v in views] + ["wall time (s)"]
-    lines = [f"## {title}", "", f"{stat}, at " + " and ".join(map(str, views)) + " views captured.", "",
+    head = ["planner"] + [f"{s} @{v}" for s in scenes for v in views] + ["planning (s)", "wall time (s)"]
+    lines = [f"## {title}", "", f"{stat}, at " + " and ".join(map(str, views)) + " views captured. "
+             "Times are means over scenes of each cell's interquartile mean: planning is the time spent "
+             "choosing views and training the planner's ensemble; wall time is the whole run, with ground "
+             "truth (cached renders are fast) and evaluation.", "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     csv_rows = [["planner", "scene", "views", "iqm", "se", "n"]]
     for p in planners:
-        row, walls = [p], []
+        row, times = [p], {"planning_seconds": [], "wall_seconds": []}
         for s in scenes:
             c = cells.get((s, p))
             for v in views:
                 st = stats[(s, p, v)]
                 row.append(f"{_fmt(st)} ({st['n']})" if per_cell and st["iqm"] is not None else _fmt(st))
                 csv_rows.append([p, s, v, st["iqm"], st["se"], st["n"]])
-            if c and c["wall_seconds"]["iqm"] is not None:
-                walls.append(c["wall_seconds"]["iqm"])
-        row.append(f"{np.mean(walls):.0f}" if walls else "n/a")
+            for key, found in times.items():
+                if c and (c.get(key) or {}).get("iqm") is not None:
+                    found.append(c[key]["iqm"])
+        row += [f"{np.mean(found):.{1 if key == 'planning_seconds' else 0}f}" if found else "n/a"
+                for key, found in times.items()]
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines) + "\n", csv_rows
 

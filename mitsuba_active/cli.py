@@ -332,6 +332,10 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     if eval_steps is not None:
         cfg.eval_steps = eval_steps
     cfg.validate()
+    dropped = sorted(set(cfg.eval_views) - set(cfg.report_counts()))
+    if dropped and "eval_views" in given:
+        click.echo(f"note: --eval-views {', '.join(map(str, dropped))} left out: below the {cfg.initial_views} "
+                   f"initial views or above the budget of {cfg.budget}", err=True)
     out = Path(out) if out else default_out_dir(scene_path, planner, seed)
     new = new_entries(out)
     try:
@@ -393,6 +397,9 @@ def _plan(cfg, out: Path, quiet: bool, given=frozenset()) -> dict:
             if name in given and asked > kept:
                 click.echo(f"note: {source.name} has {kept} {kind} frames; {flag} {asked} uses all of them",
                            err=True)
+    if cfg.rig == "interior" and isinstance(source, SceneSource) and not source.scene.interior:
+        click.echo(f"note: {Path(cfg.scene).name} is an object seen from outside; --rig interior puts the "
+                   "cameras inside its bounding box", err=True)
     if cfg.distance_weight == 0 and isinstance(source, SceneSource) and source.scene.interior:
         # Colour alone leaves a sparse-view field free to fill a room with fog (see README).
         click.echo(f"note: {Path(cfg.scene).name} is a room seen from inside, which fits far better "
@@ -449,7 +456,8 @@ def bench(suite, out, profile, workers, seeds, planners, scenes, overrides, repo
         out = Path("bench") / f"{Path(suite).stem}-{profile}{tag}"
     out = Path(out)
     summary = run_suite(suite, out, profile, workers, seed_list, split(planners), split(scenes),
-                        progress=not quiet, report_only=report_only, overrides=parse_overrides(overrides))
+                        progress=not quiet, report_only=report_only, overrides=parse_overrides(overrides),
+                        log=lambda m: click.echo(f"note: {m}", err=True))
     if summary["unreported_seeds"]:
         others = ",".join(map(str, summary["unreported_seeds"]))
         click.echo(f"note: {out} also holds finished runs of seed{'s' if ',' in others else ''} {others}, "

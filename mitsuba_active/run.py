@@ -256,7 +256,10 @@ def config_differences(recorded, current: dict, compare_scene: bool = True) -> l
         return config
 
     old, new = normal(recorded), normal(current)
-    return [f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
+    keys = [k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
+    if "planner" in keys and None in (old.get("ensemble"), new.get("ensemble")) and "ensemble" in keys:
+        keys.remove("ensemble")  # one of the planners trains no ensemble: the planner says it all
+    return [f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in keys]
 
 
 def other_settings(folder, changed: list[str], advice: str) -> str:
@@ -521,6 +524,11 @@ class Run:
         scene = getattr(self.source, "scene", None)
         return getattr(scene if scene is not None else self.source, "content_hash", None)
 
+    def _add_planning_time(self, seconds: float) -> None:
+        """Count time spent planning: choosing views and training the planner's ensemble
+        (not rendering ground truth, evaluating or writing files)."""
+        self.record["planning_seconds"] = round(self.record.get("planning_seconds", 0.0) + seconds, 4)
+
     def _save_record(self) -> None:
         now = time.perf_counter()
         self.record["wall_seconds"] = round(self.record.get("wall_seconds", 0.0) + now - self._clock, 3)
@@ -585,8 +593,10 @@ class Run:
                 # The rays it was trained on: its occupancy grid still holds.
                 train_on(self.ensemble, self.env.views, 0, reset_occupancy=False)
             elif self.env.views:
+                t0 = time.perf_counter()
                 train_on(self.ensemble, self.env.views, cfg.initial_steps + cfg.steps_per_view * len(self.env.views),
                          self.progress)
+                self._add_planning_time(time.perf_counter() - t0)
             state.ensemble = self.ensemble
         self._save_record()
 
@@ -615,6 +625,7 @@ class Run:
                 # JSON has no inf or NaN: a score that is not finite is written as null.
                 "scores": None if scores is None else [float(s) if math.isfinite(s) else None for s in scores],
                 "select_seconds": round(t_select, 4), "train_seconds": round(time.perf_counter() - t1, 4)})
+            self._add_planning_time(t_select + time.perf_counter() - t1)
             self._save_round()
             bar.update(len(picks))
         bar.close()

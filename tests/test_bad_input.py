@@ -603,3 +603,12 @@ def test_ctrl_c_while_libraries_load_is_one_line(tmp_path, module, importer):
                           env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
     assert proc.returncode == -signal.SIGINT and proc.stderr == "mitsuba-active: interrupted\n", proc.stderr
     assert proc.stdout == ""
+
+
+def test_plan_notes_eval_views_it_leaves_out_and_an_interior_rig_around_an_object(spot_xml, tmp_path):
+    code, text = run_cli("plan", spot_xml, "--planner", "even", "--budget", "2", "--eval-views", "1,2,9",
+                         "--eval-steps", "5", "--resolution", "16", "--candidates", "3", "--heldout", "1",
+                         "--spp", "2", "--rig", "interior", "--quiet", "--out", tmp_path / "o")
+    assert code == 0, text
+    assert "note: --eval-views 1, 9 left out: below the 2 initial views or above the budget of 2" in text
+    assert "note: spot.xml is an object seen from outside; --rig interior puts the cameras inside" in text

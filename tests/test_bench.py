@@ -1,4 +1,5 @@
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -165,6 +166,10 @@ def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
     assert calls == [] and stamps == {p: p.stat().st_mtime_ns for p in out.rglob("run.json")}
     rec = json.loads(next(out.rglob("run.json")).read_text())
     assert rec["finished"] and rec["wall_seconds"] > 0
+    # Planning time (choosing views, training the planner's ensemble) is a part of the run's.
+    records = {p.parent.name: json.loads(p.read_text()) for p in out.rglob("run.json")}
+    assert all(0 < r["planning_seconds"] < r["wall_seconds"] for r in records.values())
+    assert "| planning (s) | wall time (s) |" in table
     # A report of what is finished, running nothing (seed 1 was never run).
     summary = run_suite(tiny_suite, out, "quick", seeds=[0, 1], progress=False, report_only=True)
     assert calls == [] and all(c["seeds"] == 1 for c in summary["cells"])
@@ -525,3 +530,56 @@ def test_tables_report_the_largest_view_count_and_the_one_nearest_half_of_it():
     assert table_views(jobs(20, [5, 10, 15, 20])) == (10, 20)
     assert table_views(jobs(6, [2, 4, 6])) == (4, 6)  # 2 and 4 are as near 3: the later one says more
     assert table_views(jobs(9, [2, 3, 9])) == (3, 9)
+
+
+def test_a_suite_run_again_says_which_runs_it_keeps(tiny_suite, tmp_path):
+    out = tmp_path / "out"
+    lines = []
+    run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["simple"], progress=False, log=lines.append)
+    assert lines == []
+    run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["simple"], progress=False, log=lines.append)
+    assert lines == ["1 of the suite's 1 runs finished earlier with these settings: kept, not run again"]
+
+
+def test_a_suite_compares_variants_of_one_planner(tiny_suite, tmp_path):
+    """A planners entry may be a variant with options of its own: its own
+    table row and run folders, beside the planners of the suite."""
+    text = tiny_suite.read_text().replace(
+        'planners = ["even", "rfe"]',
+        'planners = ["even", "rfe", { name = "rfe-log", planner = "rfe", options = { form = "log" } }]')
+    tiny_suite.write_text(text)
+    suite = load_suite(tiny_suite)
+    assert [p.name for p in suite.planners] == ["even", "rfe", "rfe-log"]
+    jobs = plan_jobs(suite, tmp_path / "out", "quick", scenes=["simple"], author=False)
+    options = {j.planner: (j.config["planner"], j.config["planner_options"], Path(j.out).name) for j in jobs}
+    assert options == {"even": ("even", {}, "even-seed0"), "rfe": ("rfe", {}, "rfe-seed0"),
+                       "rfe-log": ("rfe", {"form": "log"}, "rfe-log-seed0")}
+    summary = run_suite(tiny_suite, tmp_path / "out", "quick", planners=["rfe-log", "even"], scenes=["simple"],
+                        progress=False)
+    assert {c["planner"] for c in summary["cells"]} == {"rfe-log", "even"}
+    assert "| rfe-log |" in (tmp_path / "out" / "report" / "table_psnr.md").read_text()
+    rec = json.loads((tmp_path / "out" / "runs" / "simple" / "rfe-log-seed0" / "run.json").read_text())
+    assert rec["planner_options"]["form"] == "log"
+
+
+@pytest.mark.parametrize("entry,message", [
+    ('{ name = "a/b", planner = "rfe" }', "planner variant name 'a/b'"),
+    ('{ name = "x" }', "a planner variant is a table such as"),
+    ('{ name = "x", planner = "rfe", options = 3 }', "a planner variant is a table such as"),
+    ('{ name = "x", planner = "rfe", lr = 3 }', "a planner variant is a table such as"),
+    ('3', "a planners entry is a planner's name or a table"),
+    ('{ name = "even", planner = "rfe" }', "two planners are named even"),
+    ('{ name = "x", planner = "nope" }', "unknown planner 'nope'"),
+])
+def test_bad_planner_variants_are_refused_in_one_line(tiny_suite, entry, message):
+    tiny_suite.write_text(tiny_suite.read_text().replace('planners = ["even", "rfe"]', f'planners = ["even", {entry}]'))
+    with pytest.raises(UserError, match=re.escape(message)):
+        load_suite(tiny_suite)
+
+
+def test_a_variants_options_are_checked_before_anything_runs(tiny_suite, tmp_path):
+    tiny_suite.write_text(tiny_suite.read_text().replace(
+        'planners = ["even", "rfe"]', 'planners = [{ name = "rfe-x", planner = "rfe", options = { lam = 1 } }]'))
+    with pytest.raises(UserError, match="planner 'rfe-x': .*unknown option lam"):
+        plan_jobs(load_suite(tiny_suite), tmp_path / "out", "quick")
+    assert not (tmp_path / "out").exists()

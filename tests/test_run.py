@@ -127,6 +127,9 @@ def test_ensemble_size_counts_only_where_a_planner_trains_one(source, tmp_path):
     assert config_differences(cfg("even", 3), cfg("even", 2)) == []
     assert config_differences(cfg("fisher", 3), cfg("fisher", 1)) == []
     assert config_differences(cfg("rfe", 3), cfg("rfe", 2)) == ["ensemble: 3 -> 2"]
+    # Another planner that trains none: the planner is the difference, not an ensemble of None.
+    assert config_differences(cfg("rfe", 2), cfg("even", 2)) == ["planner: 'rfe' -> 'even'"]
+    assert config_differences(cfg("rfe", 3), cfg("fisher", 1)) == ["ensemble: 3 -> 1", "planner: 'rfe' -> 'fisher'"]
     done = _run(source, tmp_path / "e", planner="even", ensemble=3)
     assert _run(source, tmp_path / "e", planner="even", ensemble=2)["captured"] == done["captured"]
 

@@ -561,10 +561,12 @@ def unreported_seeds(jobs: list[Job]) -> list[int]:
     ``--seeds 0,1`` reported without them."""
     asked = {job.seed for job in jobs}
     found = set()
+    groups = {}  # one job of each scene and planner: its seeds' folders lie side by side
     for job in jobs:
         folder = Path(job.out)
-        stem = folder.name[:folder.name.rindex("-seed") + len("-seed")]
-        for other in folder.parent.glob(f"{stem}*"):
+        groups.setdefault((folder.parent, folder.name[:folder.name.rindex("-seed") + len("-seed")]), job)
+    for (parent, stem), job in groups.items():
+        for other in parent.glob(f"{stem}*"):
             tail = other.name[len(stem):]
             if not tail.isdigit() or int(tail) in asked or int(tail) in found:
                 continue
@@ -614,17 +616,16 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
     scenes = [s.name for s in suite.scenes if s.name in data]
     planners = [p for p in dict.fromkeys(j.planner for j in jobs)]
     views = table_views(jobs)
+    reported = [r for by_planner in data.values() for recs in by_planner.values() for r in recs]
     summary = {"suite": suite.name, "profile": profile, "overrides": overrides or {},
-               "table_views": list(views), "runs": len(jobs),
-               "runs_reported": sum(len(recs) for by_planner in data.values() for recs in by_planner.values()),
+               "table_views": list(views), "runs": len(jobs), "runs_reported": len(reported),
                "unreported_seeds": unreported_seeds(jobs),
                # Runs whose evaluation fields had too few steps to fit their own views.
                "short_training": sum(any(m.get("fit_psnr", MIN_FIT_PSNR) < MIN_FIT_PSNR for m in r["metrics"])
-                                     for by_planner in data.values() for recs in by_planner.values() for r in recs),
+                                     for r in reported),
                # Finished runs are kept across upgrades: which versions made the reported ones.
                "versions": [json.loads(v) for v in sorted({json.dumps(r.get("versions"), sort_keys=True)
-                                                           for by_planner in data.values()
-                                                           for recs in by_planner.values() for r in recs})],
+                                                           for r in reported})],
                "cells": []}
     if not data:  # nothing finished: keep whatever report is there
         return summary

@@ -486,13 +486,14 @@ class Run:
                     or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):
                 raise UserError(f"{self.out} holds a run of a scene or dataset that has changed since; "
                                 "choose another run folder (--out)")
-            started = rec.get("versions", self.versions)  # records from before versions were kept: as now
-            if started != self.versions and not rec.get("finished"):
-                differ = [k for k in {**started, **self.versions} if started.get(k) != self.versions.get(k)]
+            now = self.versions
+            started = rec.get("versions", now)  # records from before versions were kept: as now
+            if started != now and not rec.get("finished"):
+                differ = [k for k in {**started, **now} if started.get(k) != now.get(k)]
                 warnings.warn(f"{self.out} was started with " + ", ".join(f"{k} {started.get(k)}" for k in differ)
-                              + "; it goes on with " + ", ".join(f"{k} {self.versions.get(k)}" for k in differ),
+                              + "; it goes on with " + ", ".join(f"{k} {now.get(k)}" for k in differ),
                               stacklevel=2)
-                rec.setdefault("resumed_with", []).append(self.versions)
+                rec.setdefault("resumed_with", []).append(now)
             self.record = rec
             return True
         self.record = {"format": RUN_FORMAT, "versions": self.versions, "config": self._config_dict(),

@@ -362,13 +362,14 @@ def _author_suite_scene(sc, xml: Path, jobs: list[Job]) -> None:
 
 def _refuse_other_runs(jobs: list[Job]) -> None:
     """Refuse, before any run starts, a suite folder whose runs have other settings."""
-    from .run import config_differences, other_settings
+    from .run import conflicting_settings, other_settings
 
     for job in jobs:
         rec = _recorded(job)
         if rec is None:
             continue
-        changed = config_differences(rec.get("config"), job.config, compare_scene=job.content_hash is None)
+        # A larger budget is not refused: the runs go on to it.
+        changed = conflicting_settings(rec, job.config, compare_scene=job.content_hash is None)
         if changed:
             raise UserError(other_settings(job.out, changed, "use another --out for this variant of the suite"))
         if rec.get("planner_digest") != job.planner_digest:

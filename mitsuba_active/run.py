@@ -269,6 +269,19 @@ def other_settings(folder, changed: list[str], advice: str) -> str:
     return f"{folder} holds a run with other settings ({'; '.join(changed[:3])}{more}); {advice}"
 
 
+def conflicting_settings(rec: dict, current: dict, compare_scene: bool = True) -> list[str]:
+    """The settings in which a run record (a dict from run.json) differs from
+    ``current`` (:func:`config_differences`), less a budget the run can go on
+    to: one at least as large as the views it has captured. A finished run
+    thus takes a larger budget (it is extended), an unfinished one any budget
+    it has not passed."""
+    changed = config_differences(rec.get("config"), current, compare_scene)
+    captured, budget = rec.get("captured"), current.get("budget")
+    if isinstance(captured, list) and is_whole(budget) and budget >= len(captured):
+        changed = [c for c in changed if not c.startswith("budget: ")]
+    return changed
+
+
 def same_config(recorded, current: dict, compare_scene: bool = True) -> bool:
     """Whether a run record's config has the settings of ``current`` (see :func:`config_differences`)."""
     return not config_differences(recorded, current, compare_scene)
@@ -442,6 +455,7 @@ class Run:
         self.record = None
         self.ensemble = None
         self._warned_fit = False
+        self._budget_was = None  # the budget of the run in the folder, where this one differs
 
     # -- persistence --------------------------------------------------------
     @property
@@ -474,7 +488,7 @@ class Run:
             # Scenes and datasets are compared by content, not by path; a record
             # without a digest (a dataset's, from before datasets had one) by path.
             by_content = rec.get("content_hash") is not None and self._content_hash() is not None
-            changed = config_differences(rec.get("config"), self._config_dict(), compare_scene=not by_content)
+            changed = conflicting_settings(rec, self._config_dict(), compare_scene=not by_content)
             if changed:
                 raise UserError(other_settings(self.out, changed, "choose another run folder (--out)"))
             if rec.get("planner_digest") != self.planner_digest:
@@ -494,6 +508,13 @@ class Run:
                               + "; it goes on with " + ", ".join(f"{k} {now.get(k)}" for k in differ),
                               stacklevel=2)
                 rec.setdefault("resumed_with", []).append(now)
+            budget = rec["config"].get("budget")
+            if budget != self.cfg.budget:  # the run goes on to (or ends at) another budget
+                self._budget_was = budget
+                rec.setdefault("budget_changes", []).append(
+                    {"from": budget, "to": self.cfg.budget, "views": len(rec["captured"])})
+                rec["config"]["budget"] = self.cfg.budget
+                rec["finished"] = False  # a finished run only takes a larger budget
             self.record = rec
             return True
         self.record = {"format": RUN_FORMAT, "versions": self.versions, "config": self._config_dict(),
@@ -574,7 +595,12 @@ class Run:
             # the interruption is whole again.
             for n, v in enumerate(self.env.views):
                 self._save_view(n, v)
-            self.log(f"resuming {self.out}: {len(self.env.captured)} of {cfg.budget} views captured")
+            n = len(self.env.captured)
+            self.log(f"resuming {self.out}: {n} of {cfg.budget} views captured"
+                     + (f" (the budget was {self._budget_was})" if self._budget_was is not None else ""))
+            if self._budget_was is not None and (n - min(cfg.initial_views, n)) % cfg.batch:
+                self.log(f"note: its last round captured fewer than {cfg.batch} views, so its rounds from here "
+                         f"differ from those of a run made with a budget of {cfg.budget} from the start")
         else:
             self.env.reset(seed=cfg.seed, options={"initial_views": cfg.initial_views})
             self.record["captured"] = list(self.env.captured)

@@ -463,6 +463,16 @@ def test_a_changed_suite_is_refused_before_anything_is_replaced(tiny_suite, tmp_
     # Undone, the suite is the same again: its finished run counts.
     tiny_suite.write_text(text)
     assert len(run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False)["cells"]) == 1
+    # A larger budget is no other suite: its runs go on from the views they have.
+    rec_path = next(out.rglob("run.json"))
+    before = json.loads(rec_path.read_text())
+    summary = run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False,
+                        overrides={"budget": 5})
+    after = json.loads(rec_path.read_text())
+    assert after["captured"][:4] == before["captured"] and len(after["captured"]) == 5 and after["finished"]
+    assert summary["runs_reported"] == 1 and summary["table_views"] == [2, 5]
+    with pytest.raises(UserError, match=r"other settings \(budget: 5 -> 4\)"):
+        run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False)
 
 
 def test_a_suite_runs_a_planner_file_beside_it_in_worker_processes(tiny_suite, tmp_path, monkeypatch):

@@ -118,6 +118,30 @@ def test_interrupted_run_resumes_without_redoing_rounds(source, tmp_path, monkey
         _run(source, tmp_path / "cut", planner="even", budget=5)
 
 
+def test_a_finished_run_goes_on_to_a_larger_budget(source, tmp_path):
+    """Extended, a run captures what a run made with the larger budget captures."""
+    from mitsuba_active.errors import UserError
+
+    # The initial views alone (no round, no saved ensemble), then one round more, then another.
+    _run(source, tmp_path / "r", budget=2)
+    short = _run(source, tmp_path / "r", budget=3)
+    extended = _run(source, tmp_path / "r", budget=4)
+    fresh = _run(source, tmp_path / "fresh", budget=4)
+    assert extended["finished"] and extended["captured"][:3] == short["captured"]
+    assert extended["captured"] == fresh["captured"]
+    assert np.allclose([r["scores"] for r in extended["rounds"]], [r["scores"] for r in fresh["rounds"]], rtol=1e-3)
+    # It keeps its score at the earlier budget.
+    assert [m["views"] for m in extended["metrics"]] == [2, 3, 4]
+    assert np.isclose(extended["metrics"][-1]["psnr"], fresh["metrics"][-1]["psnr"], atol=0.05)
+    assert extended["budget_changes"] == [{"from": 2, "to": 3, "views": 2}, {"from": 3, "to": 4, "views": 3}]
+    assert extended["config"]["budget"] == 4
+    assert extended["ensemble_file"] == "ensemble_004.npz" and not (tmp_path / "r" / "ensemble_003.npz").exists()
+    assert len(list((tmp_path / "r" / "views").glob("*.png"))) == 4
+    # Fewer views than it has captured cannot be taken back.
+    with pytest.raises(UserError, match=r"other settings \(budget: 4 -> 3\)"):
+        _run(source, tmp_path / "r", budget=3)
+
+
 def test_ensemble_size_counts_only_where_a_planner_trains_one(source, tmp_path):
     from mitsuba_active.run import config_differences
 
@@ -274,8 +298,13 @@ def test_plan_command_end_to_end(spot_xml, tmp_path):
     (out / "run.json").write_text(json.dumps({**rec, "config": {**rec["config"], "eval_views": [3, 2]}}))
     res = CliRunner().invoke(main, args)
     assert res.exit_code == 0 and "already complete" in res.output, res.output
-    res = CliRunner().invoke(main, [*args, "--budget", "4", "--seed", "5"])
-    assert res.exit_code == 2 and "other settings (budget: 3 -> 4; seed: 0 -> 5)" in res.output, res.output
+    res = CliRunner().invoke(main, [*args, "--budget", "2", "--seed", "5"])
+    assert res.exit_code == 2 and "other settings (budget: 3 -> 2; seed: 0 -> 5)" in res.output, res.output
+    # A larger budget takes the run on from the views it has.
+    res = CliRunner().invoke(main, [*args, "--budget", "4", "--quiet"])
+    assert res.exit_code == 0 and "resuming" in res.output and "(the budget was 3)" in res.output, res.output
+    rec = json.loads((out / "run.json").read_text())
+    assert rec["finished"] and len(rec["captured"]) == 4 and [m["views"] for m in rec["metrics"]] == [2, 3, 4]
 
 
 def test_plan_takes_a_mesh(shared_data, tmp_path):

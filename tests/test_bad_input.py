@@ -612,3 +612,26 @@ def test_plan_notes_eval_views_it_leaves_out_and_an_interior_rig_around_an_objec
     assert code == 0, text
     assert "note: --eval-views 1, 9 left out: below the 2 initial views or above the budget of 2" in text
     assert "note: spot.xml is an object seen from outside; --rig interior puts the cameras inside" in text
+
+
+def test_mitsuba_warnings_are_plain_lines_on_stderr(tmp_path):
+    """A scene Mitsuba loads with a complaint: the command says so once on stderr, without colour codes,
+    and its output on stdout stays its own. In-process, Mitsuba's own logging is put back afterwards."""
+    import mitsuba as mi
+
+    xml = tmp_path / "s.xml"
+    spheres = "".join(f'<shape type="sphere"><transform name="to_world"><scale x="0.3" y="{0.4 + i / 10}" z="0.3"/>'
+                      '</transform><bsdf type="diffuse"/></shape>' for i in range(3))
+    xml.write_text(f'<scene version="3.0.0"><emitter type="constant"/>{spheres}</scene>')
+    command = ["render", str(xml), "-o", str(tmp_path / "r"), "--candidates", "2", "--heldout", "1",
+               "--resolution", "8", "--spp", "1", "--views", "1"]
+    proc = subprocess.run([sys.executable, "-m", "mitsuba_active", *command], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert "\x1b" not in proc.stdout + proc.stderr and "WARN" not in proc.stdout, proc.stdout
+    warned = [ln for ln in proc.stderr.splitlines() if "non-uniform scaling" in ln]
+    assert warned == ["mitsuba-active: warning: [Sphere] 'to_world' transform shouldn't contain non-uniform "
+                      "scaling!"], proc.stderr
+    logger = mi.logger()
+    before = (logger.appender_count(), logger.formatter().has_date())
+    code, _ = run_cli(*command)
+    assert code == 0 and (logger.appender_count(), logger.formatter().has_date()) == before

@@ -37,7 +37,8 @@ class NoveltyWeightedVariance(Planner):
     min_members = 2  # a variance across members needs two of them
 
     def __init__(self, power: float = 1.0):
-        if not power >= 0:
+        # A planner's options come from the command line or a suite file: check them with a clear message.
+        if isinstance(power, bool) or not isinstance(power, (int, float)) or not power >= 0:
             raise ValueError(f"power must be a number >= 0, got {power!r}")
         self.power = float(power)
 

@@ -372,7 +372,7 @@ def _refuse_other_runs(jobs: list[Job]) -> None:
         changed = conflicting_settings(rec, job.config, compare_scene=job.content_hash is None)
         if changed:
             raise UserError(other_settings(job.out, changed, "use another --out for this variant of the suite"))
-        if rec.get("planner_digest") != job.planner_digest:
+        if rec.get("planner_digest") != job.planner_digest and rec.get("rounds"):  # none: the run starts over
             suite_dir = Path(job.out).parent.parent.parent
             raise UserError(f"{suite_dir} holds runs made with another version of the planner's code "
                             f"({job.planner}); use another --out, undo the change, or remove its runs "

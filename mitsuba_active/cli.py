@@ -208,8 +208,9 @@ def _check_rig_options(rig: str) -> None:
 @_rig_options
 @click.option("--views", type=int, default=None, help="Render only the first N views of the split [all].")
 @click.option("--split", type=click.Choice(["candidates", "heldout"]), default="candidates", show_default=True)
+@click.option("--quiet", is_flag=True, help="No progress bar.")
 @_one_line_errors
-def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, views, split):
+def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, views, split, quiet):
     """Render ground-truth RGB and distance of a scene's views into OUT (EXR + PNG).
 
     SCENE_XML defaults to the bundled scene.
@@ -235,7 +236,7 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
     records = []
     try:
         stage.mkdir(parents=True)
-        for i, cam in enumerate(tqdm(cams, desc="rendering", unit="view")):
+        for i, cam in enumerate(tqdm(cams, desc="rendering", unit="view", disable=quiet)):
             v = source.groundtruth.render(cam)
             stem = f"{split[:4]}_{i:03d}"
             write_exr(stage / f"{stem}.exr", {"RGB": srgb_to_linear(v.rgb), "Z": v.distance})
@@ -324,7 +325,8 @@ def _parse_counts(text: str) -> list[int]:
 @click.option("--distance-weight", type=float, default=0.0, show_default=True,
               help="Weight of the distance loss (0: photometric only).")
 @click.option("--out", "out", type=click.Path(file_okay=False), default=None,
-              help="Run folder [runs/SCENE-PLANNER-seedN]; an unfinished run there is resumed.")
+              help="Run folder [runs/SCENE-PLANNER-seedN]; an unfinished run there is resumed, a finished one "
+                   "given a larger --budget goes on from the views it has.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 @_one_line_errors
 def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig, n_candidates, n_heldout,
@@ -460,7 +462,8 @@ def export(run_dir, out):
 @main.command()
 @click.argument("suite", type=click.Path(dir_okay=False))
 @click.option("--out", "out", type=click.Path(file_okay=False), default=None,
-              help="Suite folder [bench/SUITE-PROFILE, plus each --set]; finished runs there are kept and skipped.")
+              help="Suite folder [bench/SUITE-PROFILE, plus each --set]; finished runs there are kept and skipped "
+                   "(with a larger budget in the suite file, they go on from the views they have).")
 @click.option("--profile", type=click.Choice(["quick", "full"]), default="quick", show_default=True,
               help="quick: small images and few steps, one seed; full: paper-like settings, five seeds.")
 @click.option("--workers", type=int, default=1, show_default=True, help="Parallel worker processes.")

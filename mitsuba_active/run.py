@@ -277,8 +277,11 @@ def conflicting_settings(rec: dict, current: dict, compare_scene: bool = True) -
     it has not passed."""
     changed = config_differences(rec.get("config"), current, compare_scene)
     captured, budget = rec.get("captured"), current.get("budget")
-    if isinstance(captured, list) and is_whole(budget) and budget >= len(captured):
-        changed = [c for c in changed if not c.startswith("budget: ")]
+    if isinstance(captured, list) and is_whole(budget):
+        if budget >= len(captured):
+            return [c for c in changed if not c.startswith("budget: ")]
+        return [f"{c}: fewer than the {len(captured)} views it has captured" if c.startswith("budget: ") else c
+                for c in changed]
     return changed
 
 
@@ -485,21 +488,30 @@ class Run:
                 raise UserError(f"{self.record_path} is damaged ({exc}); remove it to start over") from None
             if not isinstance(rec, dict):
                 raise UserError(f"{self.record_path} is not a run record; remove it to start over")
+            captured, n = rec.get("captured"), len(self.source.candidates)
+            if not (isinstance(captured, list) and all(is_whole(i) and 0 <= i < n for i in captured)):
+                raise UserError(f"{self.record_path} is damaged (its captured views are not {n} candidates' "
+                                "indices); remove it to start over")
             # Scenes and datasets are compared by content, not by path; a record
             # without a digest (a dataset's, from before datasets had one) by path.
             by_content = rec.get("content_hash") is not None and self._content_hash() is not None
             changed = conflicting_settings(rec, self._config_dict(), compare_scene=not by_content)
             if changed:
                 raise UserError(other_settings(self.out, changed, "choose another run folder (--out)"))
-            if rec.get("planner_digest") != self.planner_digest:
-                raise UserError(f"{self.out} holds a run made with another version of the planner's code "
-                                f"({planner_label(self.cfg.planner)}); choose another run folder (--out), "
-                                "or remove this one")
             if ((by_content and rec["content_hash"] != self._content_hash())
                     or rec.get("candidates") != [c.to_dict() for c in self.source.candidates]
                     or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):
                 raise UserError(f"{self.out} holds a run of a scene or dataset that has changed since; "
                                 "choose another run folder (--out)")
+            if rec.get("planner_digest") != self.planner_digest:
+                if rec.get("rounds"):
+                    raise UserError(f"{self.out} holds a run made with another version of the planner's code "
+                                    f"({planner_label(self.cfg.planner)}); choose another run folder (--out), "
+                                    "or remove this one")
+                # It stopped before the planner chose a view (a planner being fixed):
+                # nothing in the folder is the planner's work.
+                self.log(f"note: the planner's code changed before it chose a view: {self.out} starts over")
+                return self._start()
             now = self.versions
             started = rec.get("versions", now)  # records from before versions were kept: as now
             if started != now and not rec.get("finished"):
@@ -517,6 +529,10 @@ class Run:
                 rec["finished"] = False  # a finished run only takes a larger budget
             self.record = rec
             return True
+        return self._start()
+
+    def _start(self) -> bool:
+        """A new record (False: not resuming)."""
         self.record = {"format": RUN_FORMAT, "versions": self.versions, "config": self._config_dict(),
                        "planner_options": self.planner.options(), "planner_digest": self.planner_digest,
                        "scene": self.source.name,

@@ -471,7 +471,7 @@ def test_a_changed_suite_is_refused_before_anything_is_replaced(tiny_suite, tmp_
     after = json.loads(rec_path.read_text())
     assert after["captured"][:4] == before["captured"] and len(after["captured"]) == 5 and after["finished"]
     assert summary["runs_reported"] == 1 and summary["table_views"] == [2, 5]
-    with pytest.raises(UserError, match=r"other settings \(budget: 5 -> 4\)"):
+    with pytest.raises(UserError, match=r"other settings \(budget: 5 -> 4: fewer than the 5 views it has captured\)"):
         run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False)
 
 
@@ -524,7 +524,7 @@ def test_a_failed_job_stops_the_workers_without_tracebacks(tiny_suite, tmp_path)
     # Idle workers that the failure stops exit at once, not through an exception in their exit handlers.
     assert proc.stderr.strip().splitlines() == [
         "mitsuba-active: error: the wrong.py:Wrong planner answered list: select(state, batch) must return "
-        "(indices, scores): 1 candidate indices in [0, 8), and 8 scores or None"], proc.stderr
+        "(indices, scores): 1 candidate indices (whole numbers) in [0, 8), and 8 scores or None"], proc.stderr
 
 
 def test_tables_report_the_largest_view_count_and_the_one_nearest_half_of_it():

@@ -35,8 +35,10 @@ def test_the_example_planner_weighs_variance_by_novelty():
     from types import SimpleNamespace
 
     import numpy as np
+    import pytest
 
     from mitsuba_active.cameras import fibonacci_sphere
+    from mitsuba_active.errors import UserError
     from mitsuba_active.planners import PlanningState, make_planner
 
     cands = fibonacci_sphere(12, [0, 0, 0], 2.0, 40.0, 8, 8)
@@ -54,3 +56,6 @@ def test_the_example_planner_weighs_variance_by_novelty():
     opposite = int(np.argmin(forward @ forward[0]))
     picks, _ = make_planner(ref, power=50.0).select(state, 1)
     assert picks == [opposite] != [11]  # the direction farthest from the captured one
+    # Its option, given as text on a command line, gets the example's own message.
+    with pytest.raises(UserError, match=r"power must be a number >= 0, got 'abc' \(it takes power\)"):
+        make_planner(ref, power="abc")

@@ -120,9 +120,11 @@ def test_render_command_replaces_an_earlier_render_whole(spot_xml, tmp_path, mon
         result = CliRunner().invoke(main, ["render", str(spot_xml), "-o", str(out), *tiny, *args])
         return result.exit_code, result.output
 
-    assert render()[0] == 0
+    code, text = render()
+    assert code == 0 and "rendering: 100%" in text, text
     (out / "notes.txt").write_text("mine")
-    assert render("--views", "2")[0] == 0
+    code, text = render("--views", "2", "--quiet")
+    assert code == 0 and "rendering" not in text, text
     names = sorted(p.name for p in out.iterdir())
     assert names == ["cameras.json", "cand_000.exr", "cand_000.png", "cand_000_distance.png",
                      "cand_001.exr", "cand_001.png", "cand_001_distance.png", "notes.txt"], names

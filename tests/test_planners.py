@@ -236,8 +236,16 @@ def test_registering_a_planner_by_name():
     try:
         register(Mine)
         assert make_planner("mine_for_a_test").select(PlanningState(CANDS, []), 1) == ([1], None)
+        # The same class defined again (a reloaded module) takes its name back; another class does not.
+        register(type("Mine", (Planner,), {"name": "mine_for_a_test", "__module__": Mine.__module__,
+                                           "__qualname__": Mine.__qualname__}))
+        with pytest.raises(UserError, match=r"'mine_for_a_test' is the name of the planner .*Mine already"):
+            register(type("Yours", (Planner,), {"name": "mine_for_a_test"}))
     finally:
         REGISTRY.pop("mine_for_a_test", None)
+    with pytest.raises(UserError, match="give Nameless a name"):
+        register(type("Nameless", (Planner,), {}))
+    assert "planner" not in REGISTRY
     for name, message in (("rfe", "one of mitsuba-active's planners"), ("a:b", "without ':'")):
         with pytest.raises(UserError, match=message):
             register(type("Other", (Mine,), {"name": name}))
@@ -261,7 +269,7 @@ def test_a_planners_answer_is_checked(answer, message):
         def select(self, state, batch):
             return answer
 
-    expected = "must return \\(indices, scores\\): 1 candidate indices in \\[0, 12\\)"
+    expected = "must return \\(indices, scores\\): 1 candidate indices \\(whole numbers\\) in \\[0, 12\\)"
     with pytest.raises(UserError, match=f"the odd planner {message}.*{expected}"):
         Odd().checked_select(PlanningState(CANDS, []), 1)
     picks, scores = make_planner("coverage").checked_select(PlanningState(CANDS, [0]), 2)

@@ -138,7 +138,8 @@ def test_a_finished_run_goes_on_to_a_larger_budget(source, tmp_path):
     assert extended["ensemble_file"] == "ensemble_004.npz" and not (tmp_path / "r" / "ensemble_003.npz").exists()
     assert len(list((tmp_path / "r" / "views").glob("*.png"))) == 4
     # Fewer views than it has captured cannot be taken back.
-    with pytest.raises(UserError, match=r"other settings \(budget: 4 -> 3\)"):
+    with pytest.raises(UserError, match=r"other settings \(budget: 4 -> 3: fewer than the 4 views it has "
+                                        r"captured\)"):
         _run(source, tmp_path / "r", budget=3)
 
 
@@ -274,6 +275,11 @@ def test_resume_refuses_a_changed_scene(source, tmp_path, spot_xml):
     (tmp_path / "r" / "run.json").write_text(json.dumps(rec))
     with pytest.raises(UserError, match="changed"):
         _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])
+    # A record edited by hand, naming a view the scene has no candidate for.
+    for captured in ([0, 99], [0, "1"], None):
+        (tmp_path / "r" / "run.json").write_text(json.dumps({**rec, "captured": captured}))
+        with pytest.raises(UserError, match=r"run.json is damaged \(its captured views are not 10 candidates'"):
+            _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])
 
 
 def test_plan_command_end_to_end(spot_xml, tmp_path):
@@ -299,7 +305,8 @@ def test_plan_command_end_to_end(spot_xml, tmp_path):
     res = CliRunner().invoke(main, args)
     assert res.exit_code == 0 and "already complete" in res.output, res.output
     res = CliRunner().invoke(main, [*args, "--budget", "2", "--seed", "5"])
-    assert res.exit_code == 2 and "other settings (budget: 3 -> 2; seed: 0 -> 5)" in res.output, res.output
+    assert res.exit_code == 2 and ("other settings (budget: 3 -> 2: fewer than the 3 views it has captured; "
+                                   "seed: 0 -> 5)") in res.output, res.output
     # A larger budget takes the run on from the views it has.
     res = CliRunner().invoke(main, [*args, "--budget", "4", "--quiet"])
     assert res.exit_code == 0 and "resuming" in res.output and "(the budget was 3)" in res.output, res.output
@@ -368,6 +375,30 @@ def test_plan_runs_a_planner_of_ones_own(spot_xml, tmp_path, monkeypatch):
     (tmp_path / "mine.py").write_text(PLANNER_FILE.replace("self.offset\n", "self.offset + 1\n"))
     res = CliRunner().invoke(main, args)
     assert res.exit_code == 2 and "another version of the planner's code (mine.py:Last)" in res.output, res.output
+
+
+def test_a_planner_fixed_before_it_chose_a_view_starts_the_run_over(spot_xml, tmp_path, monkeypatch):
+    from tests.test_planners import PLANNER_FILE
+
+    broken = PLANNER_FILE.replace("return greedy_top(scores, unseen(state), batch), scores", "return [99], None")
+    (tmp_path / "mine.py").write_text(broken)
+    monkeypatch.chdir(tmp_path)
+    args = ["plan", str(spot_xml), "--planner", "mine.py:Last", "--budget", "3", "--candidates", "6", "--heldout",
+            "2", "--resolution", "16", "--spp", "2", "--eval-views", "3", "--eval-steps", "20", "--quiet",
+            "--out", "r"]
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 2 and "the mine.py:Last planner picked [99]" in res.output, res.output
+    assert json.loads((tmp_path / "r" / "run.json").read_text())["rounds"] == []
+    (tmp_path / "mine.py").write_text(PLANNER_FILE)
+    res = CliRunner().invoke(main, args)
+    assert res.exit_code == 0 and "the planner's code changed before it chose a view: r starts over" in res.output
+    rec = json.loads((tmp_path / "r" / "run.json").read_text())
+    assert rec["finished"] and len(rec["rounds"]) == 1
+    assert rec["captured"][2] == max(set(range(6)) - set(rec["captured"][:2]))
+    # Once it has chosen views, other code is refused.
+    (tmp_path / "mine.py").write_text(broken)
+    res = CliRunner().invoke(main, [*args, "--budget", "4"])
+    assert res.exit_code == 2 and "another version of the planner's code" in res.output, res.output
 
 
 def test_run_json_is_standard_json_when_scores_are_not_finite(source, tmp_path):

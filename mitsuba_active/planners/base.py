@@ -87,8 +87,8 @@ class Planner:
         C scores or None. Returns the picks as ints and the scores as float64."""
         answer = self.select(state, batch)
         n = len(state.candidates)
-        expected = (f"select(state, batch) must return (indices, scores): {batch} candidate indices in [0, {n}), "
-                    f"and {n} scores or None")
+        expected = (f"select(state, batch) must return (indices, scores): {batch} candidate indices (whole "
+                    f"numbers) in [0, {n}), and {n} scores or None")
         if not (isinstance(answer, tuple) and len(answer) == 2):
             raise UserError(f"the {self.name} planner answered {type(answer).__name__}: {expected}")
         picks, scores = answer
@@ -147,10 +147,16 @@ def register(cls):
     """Class decorator: make a planner available by its ``name`` (in this process)."""
     if not isinstance(cls.name, str) or not cls.name or ":" in cls.name:
         raise UserError(f"a registered planner's name is a word without ':', got {cls.name!r}")
+    if cls.name == Planner.name:
+        raise UserError(f"give {cls.__name__} a name to be registered by (a class attribute: name = \"...\")")
     taken = REGISTRY.get(cls.name)
     if taken is not None and taken.__module__.startswith(__name__.rpartition(".")[0] + ".") and taken is not cls:
         raise UserError(f"'{cls.name}' is the name of one of mitsuba-active's planners; "
                         f"give {cls.__name__} another name")
+    # The same class defined again (its module reloaded) takes its name back; another class does not.
+    if taken is not None and (taken.__module__, taken.__qualname__) != (cls.__module__, cls.__qualname__):
+        raise UserError(f"'{cls.name}' is the name of the planner {taken.__module__}.{taken.__qualname__} "
+                        f"already; give {cls.__name__} another name")
     REGISTRY[cls.name] = cls
     return cls
 

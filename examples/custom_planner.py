@@ -23,6 +23,7 @@ this file too: a run or suite folder is not resumed with edited code.
 
 import numpy as np
 
+from mitsuba_active.checks import is_number
 from mitsuba_active.planners import Planner, PlanningState, greedy_top, unseen
 from mitsuba_active.planners.rfe import rfe_scores
 
@@ -38,7 +39,7 @@ class NoveltyWeightedVariance(Planner):
 
     def __init__(self, power: float = 1.0):
         # A planner's options come from the command line or a suite file: check them with a clear message.
-        if isinstance(power, bool) or not isinstance(power, (int, float)) or not power >= 0:
+        if not is_number(power) or not power >= 0:
             raise ValueError(f"power must be a number >= 0, got {power!r}")
         self.power = float(power)
 

@@ -25,11 +25,13 @@ over scenes gives each planner's margin over ``random`` and ``even``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
 import threading
 import time
+import warnings
 import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
@@ -56,6 +58,9 @@ PROFILES = {
 TABLE_VIEWS = (10, 20)
 #: Planners that the scene-mean table measures every other planner against.
 BASELINES = ("random", "even")
+#: Differences up to this (dB, or points of the metric) are ties, not wins:
+#: planners that captured the same views differ by rounding alone.
+TIE = 1e-6
 #: Metrics of the tables: title, and whether higher values are better.
 METRICS = {"psnr": ("Photometric held-out PSNR (dB)", True),
            "distance_error": ("Distance error (%)", False)}
@@ -314,6 +319,13 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                     cfg.validate(None if cfg.rig == "xml" else cfg.candidates)
                 except UserError as exc:  # e.g. budget = "20"
                     raise UserError(f"scene '{sc.name}': {exc}") from None
+                own = {k: v for k, v in (overrides.get("planner_options") or {}).items()
+                       if k in planner.options and planner.options[k] != v}
+                if own:  # the row would carry the variant's name and another planner's results
+                    k = next(iter(own))
+                    raise UserError(f"planner '{planner.name}' sets {k} = {planner.options[k]!r} itself; "
+                                    f"--set planner_options.{k} = {own[k]!r} would run another planner under its "
+                                    "name (list that one in the suite)")
                 # Options the runs would refuse, refused before anything is written.
                 try:
                     make_planner(planner.ref, **cfg.planner_options).check_ensemble_size(cfg.ensemble)
@@ -362,7 +374,7 @@ def _author_suite_scene(sc, xml: Path, jobs: list[Job]) -> None:
 
 def _refuse_other_runs(jobs: list[Job]) -> None:
     """Refuse, before any run starts, a suite folder whose runs have other settings."""
-    from .run import conflicting_settings, other_settings
+    from .run import conflicting_settings, other_planner_code, other_settings
 
     for job in jobs:
         rec = _recorded(job)
@@ -372,7 +384,7 @@ def _refuse_other_runs(jobs: list[Job]) -> None:
         changed = conflicting_settings(rec, job.config, compare_scene=job.content_hash is None)
         if changed:
             raise UserError(other_settings(job.out, changed, "use another --out for this variant of the suite"))
-        if rec.get("planner_digest") != job.planner_digest and rec.get("rounds"):  # none: the run starts over
+        if other_planner_code(rec, job.planner_digest):
             suite_dir = Path(job.out).parent.parent.parent
             raise UserError(f"{suite_dir} holds runs made with another version of the planner's code "
                             f"({job.planner}); use another --out, undo the change, or remove its runs "
@@ -422,6 +434,16 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
     kept = sum(finished_record(job) is not None for job in jobs)
     if kept:
         log(f"{kept} of the suite's {len(jobs)} runs finished earlier with these settings: kept, not run again")
+    grown = [(job, rec) for job in jobs if (rec := _recorded(job)) and rec.get("finished")
+             and (rec.get("config") or {}).get("budget", job.config["budget"]) < job.config["budget"]]
+    if grown:
+        log(f"{len(grown)} of the suite's runs finished earlier with a smaller budget: they go on from the views "
+            "they have")
+        short = sum(bool((len(rec.get("captured") or []) - job.config["initial_views"]) % job.config["batch"])
+                    for job, rec in grown)
+        if short:
+            log(f"note: in {short} of them the last round captured fewer views than a batch, so their rounds from "
+                "here differ from those of runs made with this budget from the start")
     threads = max(1, (os.cpu_count() or 1) // workers)
     bar = tqdm(total=len(jobs), desc=f"suite {suite.name}", unit="run", disable=not progress)
     try:
@@ -508,6 +530,15 @@ def _init_worker(parent: int):
     signal.signal(signal.SIGTERM, stop)
     threading.Thread(target=watch_parent, daemon=True).start()
     tqdm.set_lock(threading.RLock())
+    # Warnings, Mitsuba's too, as the command line shows them: plain lines on stderr.
+    from .console import mitsuba_log_as_warnings, show_warning
+
+    warnings.showwarning = show_warning
+    _WORKER_LOGGING.enter_context(mitsuba_log_as_warnings())
+
+
+#: Keeps the worker's Mitsuba logging (see :func:`_init_worker`) for its lifetime.
+_WORKER_LOGGING = contextlib.ExitStack()
 
 
 #: Whether this worker process is running a job (see :func:`_init_worker`).
@@ -594,14 +625,16 @@ def table_views(jobs: list[Job]) -> tuple:
     """The view counts the tables report: :data:`TABLE_VIEWS` when every job
     evaluates them, else the largest count every job evaluates and the one
     nearest half of it, the larger of two as near (a suite with another budget
-    or other counts: of 2, 4 and 6 views, 4 and 6)."""
+    or other counts: of 2, 4 and 6 views, 4 and 6), but not the initial views
+    (where every planner has the same views)."""
     from .run import RunConfig
 
     common = set.intersection(*[set(RunConfig(**j.config).report_counts()) for j in jobs]) if jobs else set()
     if set(TABLE_VIEWS) <= common or not common:
         return TABLE_VIEWS
     last = max(common)
-    rest = sorted(common - {last}, key=lambda v: (abs(v - last / 2), -v))
+    initial = max(int(j.config.get("initial_views", 0)) for j in jobs)
+    rest = sorted((v for v in common - {last} if v > initial), key=lambda v: (abs(v - last / 2), -v))
     return (rest[0], last) if rest else (last,)
 
 
@@ -639,6 +672,9 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
             for metric in METRICS:
                 for v in views:
                     cell[f"{metric}@{v}"] = summarize([metric_at(r, metric, v) for r in recs])
+            # Each seed's values, for comparisons over the seeds two planners share.
+            cell["per_seed"] = {str(r["config"]["seed"]): {f"{metric}@{v}": metric_at(r, metric, v)
+                                                          for metric in METRICS for v in views} for r in recs}
             summary["cells"].append(cell)
     # The report is written whole into a new folder that then replaces the earlier one:
     # no half-written report after an interruption, and no plots of scenes it no longer covers.
@@ -648,15 +684,22 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
             md, csv_rows = _table(summary, scenes, planners, metric, title)
             (folder / f"table_{metric}.md").write_text(md)
             (folder / f"table_{metric}.csv").write_text("\n".join(",".join(map(str, r)) for r in csv_rows) + "\n")
+        note = _overrides_note(summary["overrides"])
         (folder / "table_mean.md").write_text("\n".join(
-            _mean_table(summary["mean_over_scenes"][m], planners, *METRICS[m], views=views) for m in METRICS))
+            _mean_table(summary["mean_over_scenes"][m], planners, *METRICS[m], views=views, note=note)
+            for m in METRICS))
         (folder / "results.json").write_text(json.dumps(summary, indent=1))
-        # Plots: per scene, IQM over seeds with a +-SE band; and one summary over scenes.
+        # Plots: per scene, IQM over seeds with a +-SE band; and a summary over the scenes
+        # that every planner with results has. A planner has one colour in every plot.
+        colors = {p: f"C{i % 10}" for i, p in enumerate(planners)}
+        with_results = {p for by_planner in data.values() for p in by_planner}
+        shared = [s for s in scenes if with_results <= set(data[s])]
         overall: dict = {}
         for scene in scenes:
             series, bands = {}, {}
             for planner, recs in data[scene].items():
-                counts = sorted({m["views"] for r in recs for m in r["metrics"]})
+                # The counts every seed has (a run taken on to a larger budget also has its earlier one).
+                counts = sorted(set.intersection(*[{m["views"] for m in r["metrics"]} for r in recs]))
                 rows, lo, hi = [], {}, {}
                 for c in counts:
                     row = {"views": c}
@@ -670,17 +713,29 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
                 series[planner] = rows
                 bands[planner] = {m: (lo[m], hi[m]) for m in lo if len(lo[m]) == len(counts)}
                 for row in rows:
-                    if row["psnr"] is not None:
+                    if row["psnr"] is not None and scene in shared:
                         overall.setdefault(planner, {}).setdefault(row["views"], []).append(row["psnr"])
             scene_plots = folder / "plots" / scene
             scene_plots.mkdir(parents=True, exist_ok=True)
-            plot_metrics(series, scene_plots, title=scene, bands=bands)
-        mean_series = {p: [{"views": v, "psnr": float(np.mean(x))} for v, x in sorted(d.items())]
-                       for p, d in overall.items()}
-        if mean_series:
+            plot_metrics(series, scene_plots, title=scene, bands=bands, colors=colors)
+        # A point of the summary is a mean over all of its scenes, never over some.
+        mean_series = {p: [{"views": v, "psnr": float(np.mean(x))} for v, x in sorted(d.items())
+                           if len(x) == len(shared)] for p, d in overall.items()}
+        if any(mean_series.values()):
             (folder / "plots" / "summary").mkdir(parents=True, exist_ok=True)
-            plot_metrics(mean_series, folder / "plots" / "summary", title=f"{suite.name}: mean over scenes")
+            plot_metrics(mean_series, folder / "plots" / "summary", colors=colors,
+                         title=f"{suite.name}: mean over {len(shared)} scene{'' if len(shared) == 1 else 's'}")
     return summary
+
+
+def _overrides_note(overrides: dict) -> str:
+    """A sentence naming the settings ``--set`` changed for every run ('' when none),
+    so that a table copied elsewhere keeps them."""
+    flat = [f"{k}.{name}={v!r}" if isinstance(v, str) else f"{k}.{name}={v}"
+            for k, table in overrides.items() if isinstance(table, dict) for name, v in table.items()]
+    flat += [f"{k}={v!r}" if isinstance(v, str) else f"{k}={v}" for k, v in overrides.items()
+             if not isinstance(v, dict)]
+    return f" Every run with --set {', '.join(sorted(flat))}." if flat else ""
 
 
 def _fmt(s: dict) -> str:
@@ -711,7 +766,8 @@ def _table(summary: dict, scenes, planners, metric: str, title: str):
     lines = [f"## {title}", "", f"{stat}, at " + " and ".join(map(str, views)) + " views captured. "
              "Times are means over scenes of each cell's interquartile mean: planning is the time spent "
              "choosing views and training the planner's ensemble; wall time is the whole run, with ground "
-             "truth (cached renders are fast) and evaluation.", "",
+             "truth (cached renders are fast) and evaluation." + _overrides_note(summary.get("overrides") or {}),
+             "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     csv_rows = [["planner", "scene", "views", "iqm", "se", "n"]]
     for p in planners:
@@ -738,9 +794,14 @@ def scene_means(summary: dict, scenes, planners, metric: str) -> dict:
     of that condition and gets no means. Returns ``{planner: {"scenes": n,
     "seeds": the distinct seed counts of its cells, "mean@V": mean of the
     cells' IQMs, "vs_B@V": mean difference to baseline B, "wins_vs_B@V":
-    scenes where the planner is better than B}}`` for each table view V and
-    each baseline of :data:`BASELINES` with results (better: higher, or lower
-    for errors).
+    scenes where the planner is better than B, "compared_vs_B@V": scenes
+    compared}}`` for each table view V and each baseline of :data:`BASELINES`
+    with results (better: higher, or lower for errors, by more than :data:`TIE`).
+
+    A difference on a scene is paired: the two planners' interquartile means
+    over the seeds both have (cells' ``per_seed``), so that a planner missing
+    a seed (a suite still running) is not compared with its baseline's other
+    seeds; a scene where they share no seed is not compared.
     """
     cells = {(c["scene"], c["planner"]): c for c in summary["cells"]}
     views = tuple(summary.get("table_views", TABLE_VIEWS))
@@ -748,6 +809,17 @@ def scene_means(summary: dict, scenes, planners, metric: str) -> dict:
     def value(s, p, v):
         c = cells.get((s, p))
         return None if c is None else c[f"{metric}@{v}"]["iqm"]
+
+    def paired(s, p, b, v):
+        """(p's, b's) value on scene s over the seeds both have, or None."""
+        key, cp, cb = f"{metric}@{v}", cells[(s, p)], cells[(s, b)]
+        if "per_seed" not in cp or "per_seed" not in cb:  # a summary without per-seed values
+            return value(s, p, v), value(s, b, v)
+        common = [k for k in cp["per_seed"] if k in cb["per_seed"]
+                  and cp["per_seed"][k].get(key) is not None and cb["per_seed"][k].get(key) is not None]
+        if not common:
+            return None
+        return tuple(iqm([c["per_seed"][k][key] for k in common]) for c in (cp, cb))
 
     def has_all(s, p):
         return all(value(s, p, v) is not None for v in views)
@@ -764,26 +836,30 @@ def scene_means(summary: dict, scenes, planners, metric: str) -> dict:
             for b in BASELINES:
                 if b == p or b not in present or not used:
                     continue
-                diff = [value(s, p, v) - value(s, b, v) for s in used]
-                row[f"vs_{b}@{v}"] = float(np.mean(diff))
-                row[f"wins_vs_{b}@{v}"] = int(sum((d > 0) if higher_is_better else (d < 0) for d in diff))
+                pairs = [pair for s in used if (pair := paired(s, p, b, v)) is not None]
+                diff = [a - c for a, c in pairs]
+                row[f"vs_{b}@{v}"] = float(np.mean(diff)) if diff else None
+                row[f"wins_vs_{b}@{v}"] = int(sum((d > TIE) if higher_is_better else (d < -TIE) for d in diff))
+                row[f"compared_vs_{b}@{v}"] = len(diff)
         rows[p] = row
     return rows
 
 
-def _mean_table(means: dict, planners, title: str, higher_is_better: bool = True, views=TABLE_VIEWS) -> str:
-    """Markdown of :func:`scene_means`: means, and margins over the baselines with scenes won."""
+def _mean_table(means: dict, planners, title: str, higher_is_better: bool = True, views=TABLE_VIEWS,
+                note: str = "") -> str:
+    """Markdown of :func:`scene_means`: means, and margins over the baselines with scenes won
+    (``note``: a sentence added to the caption)."""
     n = max((r["scenes"] for r in means.values()), default=0)
     baselines = [b for b in BASELINES if any(f"vs_{b}@{v}" in r for r in means.values() for v in views)]
     head = ["planner"] + [f"mean @{v}" for v in views] + [f"vs {b} @{v}" for b in baselines for v in views]
     intro = f"Mean over {n} scenes of each cell's interquartile mean ({'higher' if higher_is_better else 'lower'} is better)"
     if baselines:
-        intro += ("; 'vs B': the mean difference to planner B, and in brackets the scenes where "
-                  "the planner does better than B")
+        intro += ("; 'vs B': the mean difference to planner B on each scene over the seeds both have, and "
+                  "in brackets the scenes where the planner does better than B, of those compared")
     seeds = {c for r in means.values() for c in r["seeds"]}
     if len(seeds) > 1:
         intro += f"; the cells cover {min(seeds)} to {max(seeds)} seeds (a suite still running)"
-    lines = [f"## {title}: mean over scenes", "", intro + ".", "",
+    lines = [f"## {title}: mean over scenes", "", intro + "." + note, "",
              "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for p in planners:
         r = means[p]
@@ -791,6 +867,7 @@ def _mean_table(means: dict, planners, title: str, higher_is_better: bool = True
         for b in baselines:
             for v in views:
                 key = f"vs_{b}@{v}"
-                row.append(f"{r[key]:+.2f} ({r['wins_' + key]}/{n})" if key in r else "-")
+                ok = r.get(key) is not None
+                row.append(f"{r[key]:+.2f} ({r['wins_' + key]}/{r.get('compared_' + key, n)})" if ok else "-")
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines) + "\n"

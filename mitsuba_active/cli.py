@@ -7,7 +7,6 @@ exit code 2.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import json
 import os
@@ -26,50 +25,10 @@ with interruptible_imports():  # click and numpy load here, after the package's 
     import click
     from click.core import ParameterSource
 
+    from .console import mitsuba_log_as_warnings, show_warning
     from .errors import UserError
     from .imageio_utils import folder_name, new_entries, remove_new
     from .scenes import BUNDLED_SCENE
-
-
-def _show_warning(message, category, filename, lineno, file=None, line=None):
-    """Warnings (skipped dataset frames, a scene without lights) as one plain line."""
-    click.echo(f"mitsuba-active: warning: {message}", err=True)
-
-
-@contextlib.contextmanager
-def _mitsuba_log_as_warnings():
-    """Mitsuba's log messages (its warnings: a scene it accepts with a
-    complaint) as Python warnings, so one plain line each on stderr, once per
-    message, instead of coloured lines among the command's output on stdout.
-    Mitsuba's own appenders and format are put back afterwards."""
-    import mitsuba as mi
-
-    class Appender(mi.Appender):
-        def append(self, level, text):
-            warnings.warn(text.strip(), stacklevel=1)
-
-        def log_progress(self, progress, name, formatted, eta, ptr=None):
-            pass
-
-    logger = mi.logger()
-    formatter = logger.formatter()
-    shown = (formatter.has_date(), formatter.has_thread(), formatter.has_log_level())
-    previous = [logger.appender(i) for i in range(logger.appender_count())]
-    ours = Appender()
-    logger.clear_appenders()
-    logger.add_appender(ours)
-    formatter.set_has_date(False)
-    formatter.set_has_thread(False)
-    formatter.set_has_log_level(False)
-    try:
-        yield
-    finally:
-        logger.remove_appender(ours)
-        for appender in previous:
-            logger.add_appender(appender)
-        formatter.set_has_date(shown[0])
-        formatter.set_has_thread(shown[1])
-        formatter.set_has_log_level(shown[2])
 
 
 def _stop(signum, frame):
@@ -121,8 +80,8 @@ def _one_line_errors(fn):
         handled = threading.current_thread() is threading.main_thread()
         previous = signal.signal(signal.SIGTERM, _stop) if handled else None
         try:
-            with warnings.catch_warnings(), _mitsuba_log_as_warnings():
-                warnings.showwarning = _show_warning
+            with warnings.catch_warnings(), mitsuba_log_as_warnings():
+                warnings.showwarning = show_warning
                 with interrupts_deferred():
                     _load_libraries()
                 return fn(*args, **kwargs)

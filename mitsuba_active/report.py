@@ -31,13 +31,16 @@ METRIC_LABELS = {"psnr": "held-out PSNR (dB)", "ssim": "held-out SSIM",
                  "distance_error": "distance error (%)"}
 
 
-def plot_metrics(series: dict[str, list[dict]], out_dir, title: str = "", bands: dict | None = None) -> list[Path]:
+def plot_metrics(series: dict[str, list[dict]], out_dir, title: str = "", bands: dict | None = None,
+                 colors: dict | None = None) -> list[Path]:
     """One PNG per metric against views captured, a line per planner.
 
     Args:
         series: planner name -> list of metric records (``views``, ``psnr``, ...).
         out_dir: folder for ``psnr.png``, ``distance_error.png`` and ``ssim.png``.
         bands: optional planner name -> metric -> (lower, upper) arrays to shade.
+        colors: optional planner name -> Matplotlib colour, so that a planner
+            keeps its colour across plots (default: the colour cycle).
     """
     plt = _plt()
     written = []
@@ -49,10 +52,10 @@ def plot_metrics(series: dict[str, list[dict]], out_dir, title: str = "", bands:
             if not pts:
                 continue
             x, y = np.array(pts, dtype=float).T
-            ax.plot(x, y, marker="o", label=name)
+            (line,) = ax.plot(x, y, marker="o", label=name, color=(colors or {}).get(name))
             band = (bands or {}).get(name, {}).get(metric)
             if band is not None:
-                ax.fill_between(x, band[0], band[1], alpha=0.2)
+                ax.fill_between(x, band[0], band[1], alpha=0.2, color=line.get_color())
             plotted = True
         if not plotted:
             plt.close(fig)

@@ -229,8 +229,13 @@ def config_differences(recorded, current: dict, compare_scene: bool = True) -> l
     :func:`~mitsuba_active.planners.planner_label`, for the same reason:
     callers compare their content (:func:`~mitsuba_active.planners.base.planner_digest`).
     """
+    return [f"{k}: {old!r} -> {new!r}" for k, (old, new) in config_changes(recorded, current, compare_scene).items()]
+
+
+def config_changes(recorded, current: dict, compare_scene: bool = True) -> dict:
+    """:func:`config_differences` as ``{name: (recorded value, current value)}``."""
     if not isinstance(recorded, dict):
-        return ["config: missing"]
+        return {"config": ("missing", "present")}
     current_planner = current.get("planner")
 
     def normal(config):
@@ -259,7 +264,7 @@ def config_differences(recorded, current: dict, compare_scene: bool = True) -> l
     keys = [k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
     if "planner" in keys and None in (old.get("ensemble"), new.get("ensemble")) and "ensemble" in keys:
         keys.remove("ensemble")  # one of the planners trains no ensemble: the planner says it all
-    return [f"{k}: {old.get(k)!r} -> {new.get(k)!r}" for k in keys]
+    return {k: (old.get(k), new.get(k)) for k in keys}
 
 
 def other_settings(folder, changed: list[str], advice: str) -> str:
@@ -275,14 +280,25 @@ def conflicting_settings(rec: dict, current: dict, compare_scene: bool = True) -
     to: one at least as large as the views it has captured. A finished run
     thus takes a larger budget (it is extended), an unfinished one any budget
     it has not passed."""
-    changed = config_differences(rec.get("config"), current, compare_scene)
+    changes = config_changes(rec.get("config"), current, compare_scene)
     captured, budget = rec.get("captured"), current.get("budget")
-    if isinstance(captured, list) and is_whole(budget):
-        if budget >= len(captured):
-            return [c for c in changed if not c.startswith("budget: ")]
-        return [f"{c}: fewer than the {len(captured)} views it has captured" if c.startswith("budget: ") else c
-                for c in changed]
-    return changed
+    lines = []
+    for k, (old, new) in changes.items():
+        line = f"{k}: {old!r} -> {new!r}"
+        if k == "budget" and isinstance(captured, list) and is_whole(budget):
+            if budget >= len(captured):
+                continue
+            line += f": fewer than the {len(captured)} views it has captured"
+        lines.append(line)
+    return lines
+
+
+def other_planner_code(rec: dict, digest) -> bool:
+    """Whether a run record was made with other code of its planner (``digest``:
+    the code's now, see :func:`~mitsuba_active.planners.base.planner_digest`)
+    *and* that planner chose views in it. A run that stopped before its planner
+    chose a view (a planner being fixed) holds nothing of its work: it starts over."""
+    return rec.get("planner_digest") != digest and bool(rec.get("rounds"))
 
 
 def same_config(recorded, current: dict, compare_scene: bool = True) -> bool:
@@ -488,10 +504,6 @@ class Run:
                 raise UserError(f"{self.record_path} is damaged ({exc}); remove it to start over") from None
             if not isinstance(rec, dict):
                 raise UserError(f"{self.record_path} is not a run record; remove it to start over")
-            captured, n = rec.get("captured"), len(self.source.candidates)
-            if not (isinstance(captured, list) and all(is_whole(i) and 0 <= i < n for i in captured)):
-                raise UserError(f"{self.record_path} is damaged (its captured views are not {n} candidates' "
-                                "indices); remove it to start over")
             # Scenes and datasets are compared by content, not by path; a record
             # without a digest (a dataset's, from before datasets had one) by path.
             by_content = rec.get("content_hash") is not None and self._content_hash() is not None
@@ -503,23 +515,18 @@ class Run:
                     or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):
                 raise UserError(f"{self.out} holds a run of a scene or dataset that has changed since; "
                                 "choose another run folder (--out)")
+            n = len(self.source.candidates)
+            captured = rec.get("captured")
+            if not (isinstance(captured, list) and all(is_whole(i) and 0 <= i < n for i in captured)):  # hand-edited
+                raise UserError(f"{self.record_path} is damaged (its captured views are not indices of its {n} "
+                                "candidates); remove it to start over")
+            if other_planner_code(rec, self.planner_digest):
+                raise UserError(f"{self.out} holds a run made with another version of the planner's code "
+                                f"({planner_label(self.cfg.planner)}); choose another run folder (--out), "
+                                "or remove this one")
             if rec.get("planner_digest") != self.planner_digest:
-                if rec.get("rounds"):
-                    raise UserError(f"{self.out} holds a run made with another version of the planner's code "
-                                    f"({planner_label(self.cfg.planner)}); choose another run folder (--out), "
-                                    "or remove this one")
-                # It stopped before the planner chose a view (a planner being fixed):
-                # nothing in the folder is the planner's work.
                 self.log(f"note: the planner's code changed before it chose a view: {self.out} starts over")
                 return self._start()
-            now = self.versions
-            started = rec.get("versions", now)  # records from before versions were kept: as now
-            if started != now and not rec.get("finished"):
-                differ = [k for k in {**started, **now} if started.get(k) != now.get(k)]
-                warnings.warn(f"{self.out} was started with " + ", ".join(f"{k} {started.get(k)}" for k in differ)
-                              + "; it goes on with " + ", ".join(f"{k} {now.get(k)}" for k in differ),
-                              stacklevel=2)
-                rec.setdefault("resumed_with", []).append(now)
             budget = rec["config"].get("budget")
             if budget != self.cfg.budget:  # the run goes on to (or ends at) another budget
                 self._budget_was = budget
@@ -527,6 +534,14 @@ class Run:
                     {"from": budget, "to": self.cfg.budget, "views": len(rec["captured"])})
                 rec["config"]["budget"] = self.cfg.budget
                 rec["finished"] = False  # a finished run only takes a larger budget
+            now = self.versions
+            started = rec.get("versions", now)  # records from before versions were kept: as now
+            if started != now and not rec["finished"]:
+                differ = [k for k in {**started, **now} if started.get(k) != now.get(k)]
+                warnings.warn(f"{self.out} was started with " + ", ".join(f"{k} {started.get(k)}" for k in differ)
+                              + "; it goes on with " + ", ".join(f"{k} {now.get(k)}" for k in differ),
+                              stacklevel=2)
+                rec.setdefault("resumed_with", []).append(now)
             self.record = rec
             return True
         return self._start()

@@ -4,6 +4,7 @@
 import os
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -632,6 +633,16 @@ def test_mitsuba_warnings_are_plain_lines_on_stderr(tmp_path):
     assert warned == ["mitsuba-active: warning: [Sphere] 'to_world' transform shouldn't contain non-uniform "
                       "scaling!"], proc.stderr
     logger = mi.logger()
-    before = (logger.appender_count(), logger.formatter().has_date())
-    code, _ = run_cli(*command)
-    assert code == 0 and (logger.appender_count(), logger.formatter().has_date()) == before
+
+    def state():
+        f = logger.formatter()
+        return ([logger.appender(i) for i in range(logger.appender_count())], f.has_date(), f.has_thread(),
+                f.has_log_level())
+
+    before = state()
+    # Warnings made errors (python -W error) do not fail the scene's loading from inside Mitsuba.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        code, text = run_cli(*command)
+    assert code == 0 and "mitsuba-active: warning: [Sphere] 'to_world' transform" in text, text
+    assert state() == before

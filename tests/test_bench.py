@@ -109,6 +109,29 @@ def test_scene_means_while_a_suite_is_still_running():
     assert "vs " not in md and "| rfe | 27.00 | 27.00 |" in md
 
 
+def test_margins_pair_the_seeds_both_planners_have_and_ties_are_no_wins():
+    from mitsuba_active.bench import _mean_table, scene_means
+    from mitsuba_active.metrics import iqm
+
+    def cell(scene, planner, per_seed):
+        st = {"iqm": iqm(list(per_seed.values()))}
+        return {"scene": scene, "planner": planner, "seeds": len(per_seed), "psnr@10": st, "psnr@20": st,
+                "per_seed": {k: {"psnr@10": x, "psnr@20": x} for k, x in per_seed.items()}}
+
+    summary = {"cells": [
+        # rfe has not run seed 3 yet, where even scored high: unpaired, rfe would lead by 0.5 dB only.
+        cell("a", "even", {"0": 20.0, "1": 21.0, "2": 22.0, "3": 30.0}), cell("a", "rfe", {"0": 21.0, "1": 22.0,
+                                                                                            "2": 23.0}),
+        # The same views, scored again: a tie.
+        cell("b", "even", {"0": 10.0}), cell("b", "rfe", {"0": 10.0 + 1e-9}),
+        # No seed in common: not compared.
+        cell("c", "even", {"1": 5.0}), cell("c", "rfe", {"0": 6.0})]}
+    means = scene_means(summary, ["a", "b", "c"], ["even", "rfe"], "psnr")
+    m = means["rfe"]
+    assert m["vs_even@10"] == pytest.approx(0.5) and m["wins_vs_even@10"] == 1 and m["compared_vs_even@10"] == 2
+    assert "+0.50 (1/2) | +0.50 (1/2) |" in _mean_table(means, ["even", "rfe"], "PSNR").split("| rfe | ")[1]
+
+
 TINY_SUITE = """
 name = "tiny"
 planners = ["even", "rfe"]
@@ -145,7 +168,7 @@ def tiny_suite(tmp_path, shared_data):
 
 
 def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
-    # Tables report 10 and 20 views in real suites; this one stops at 4, so 2 and 4.
+    # Tables report 10 and 20 views in real suites; this one stops at 4 (from 2 initial views), so 4.
     out = tmp_path / "out"
     summary = run_suite(tiny_suite, out, "quick", workers=1, progress=False)
     assert len(summary["cells"]) == 4 and all(c["seeds"] == 1 for c in summary["cells"])
@@ -156,6 +179,24 @@ def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
     assert "vs even @4" in (report / "table_mean.md").read_text()
     assert json.loads((report / "results.json").read_text())["mean_over_scenes"]["psnr"]["rfe"]["scenes"] == 2
     assert (report / "plots" / "ball" / "psnr.png").is_file() and (report / "plots" / "summary" / "psnr.png").is_file()
+    assert all(set(c["per_seed"]) == {"0"} and c["per_seed"]["0"]["psnr@4"] == c["psnr@4"]["iqm"]
+               for c in summary["cells"])
+    # With rfe's run of one scene missing, the summary averages the other scene alone, as
+    # table_mean.md does, and each planner keeps its colour.
+    import mitsuba_active.report as report_module
+
+    plots = []
+    monkeypatch.setattr(report_module, "plot_metrics", lambda series, out, title="", bands=None, colors=None:
+                        plots.append((title, {p: [r["views"] for r in rows] for p, rows in series.items()}, colors)))
+    hidden = out / "runs" / "simple" / "rfe-seed0"
+    hidden.rename(tmp_path / "hidden")
+    run_suite(tiny_suite, out, "quick", progress=False, report_only=True)
+    (tmp_path / "hidden").rename(hidden)
+    titles = [t for t, _, _ in plots]
+    assert titles == ["ball", "simple", "tiny: mean over 1 scene"], titles
+    assert plots[1][1] == {"even": [2, 4]} and plots[2][1] == {"even": [2, 4], "rfe": [2, 4]}
+    assert all(colors == {"even": "C0", "rfe": "C1"} for _, _, colors in plots)
+    monkeypatch.undo()
     # Resume: finished runs are skipped, not redone.
     stamps = {p: p.stat().st_mtime_ns for p in out.rglob("run.json")}
     calls = []
@@ -199,6 +240,18 @@ def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
     table = (report / "table_psnr.md").read_text()
     summary = run_suite(tiny_suite, out, "quick", seeds=[2], progress=False, report_only=True)
     assert summary["cells"] == [] and (report / "table_psnr.md").read_text() == table
+
+
+def test_worker_processes_show_mitsubas_warnings_as_plain_lines(tiny_suite, tmp_path, capfd):
+    xml = tmp_path / "egg.xml"
+    xml.write_text('<scene version="3.0.0"><emitter type="constant"/><shape type="sphere"><transform '
+                   'name="to_world"><scale x="0.3" y="0.5" z="0.3"/></transform><bsdf type="diffuse"/></shape></scene>')
+    tiny_suite.write_text(re.sub(r'name = "simple"\nxml = ".*"', f'name = "egg"\nxml = "{xml}"', tiny_suite.read_text()))
+    capfd.readouterr()
+    run_suite(tiny_suite, tmp_path / "out", "quick", workers=2, planners=["even"], scenes=["egg"], progress=False)
+    out, err = capfd.readouterr()
+    assert "\x1b" not in out + err and "WARN" not in out, out
+    assert "mitsuba-active: warning: [Sphere] 'to_world' transform shouldn't contain non-uniform scaling!" in err
 
 
 def test_suite_runs_in_worker_processes(tiny_suite, tmp_path):
@@ -466,11 +519,16 @@ def test_a_changed_suite_is_refused_before_anything_is_replaced(tiny_suite, tmp_
     # A larger budget is no other suite: its runs go on from the views they have.
     rec_path = next(out.rglob("run.json"))
     before = json.loads(rec_path.read_text())
+    lines = []
     summary = run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False,
-                        overrides={"budget": 5})
+                        overrides={"budget": 5}, log=lines.append)
+    assert lines == ["1 of the suite's runs finished earlier with a smaller budget: they go on from the views "
+                     "they have"]
     after = json.loads(rec_path.read_text())
     assert after["captured"][:4] == before["captured"] and len(after["captured"]) == 5 and after["finished"]
-    assert summary["runs_reported"] == 1 and summary["table_views"] == [2, 5]
+    assert summary["runs_reported"] == 1 and summary["table_views"] == [4, 5]
+    for table in ("table_psnr.md", "table_mean.md"):  # a table copied elsewhere keeps the setting
+        assert "Every run with --set budget=5." in (out / "report" / table).read_text()
     with pytest.raises(UserError, match=r"other settings \(budget: 5 -> 4: fewer than the 5 views it has captured\)"):
         run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False)
 
@@ -540,6 +598,8 @@ def test_tables_report_the_largest_view_count_and_the_one_nearest_half_of_it():
     assert table_views(jobs(20, [5, 10, 15, 20])) == (10, 20)
     assert table_views(jobs(6, [2, 4, 6])) == (4, 6)  # 2 and 4 are as near 3: the later one says more
     assert table_views(jobs(9, [2, 3, 9])) == (3, 9)
+    # The initial views (2) are the same for every planner: nothing to compare.
+    assert table_views(jobs(4, [2, 4])) == (4,) and table_views(jobs(5, [2, 4])) == (4, 5)
 
 
 def test_a_suite_run_again_says_which_runs_it_keeps(tiny_suite, tmp_path):
@@ -570,6 +630,13 @@ def test_a_suite_compares_variants_of_one_planner(tiny_suite, tmp_path):
     assert "| rfe-log |" in (tmp_path / "out" / "report" / "table_psnr.md").read_text()
     rec = json.loads((tmp_path / "out" / "runs" / "simple" / "rfe-log-seed0" / "run.json").read_text())
     assert rec["planner_options"]["form"] == "log"
+    # --set cannot turn a variant into another planner that keeps its name; the same value is no change.
+    with pytest.raises(UserError, match=r"planner 'rfe-log' sets form = 'log' itself; --set planner_options.form = "
+                                        r"'sum' would run another planner under its name"):
+        plan_jobs(suite, tmp_path / "o2", "quick", planners=["rfe-log"], author=False,
+                  overrides={"planner_options": {"form": "sum"}})
+    assert len(plan_jobs(suite, tmp_path / "o2", "quick", planners=["rfe-log"], author=False,
+                         overrides={"planner_options": {"form": "log"}})) == 2
 
 
 @pytest.mark.parametrize("entry,message", [

@@ -125,7 +125,11 @@ def test_a_finished_run_goes_on_to_a_larger_budget(source, tmp_path):
     # The initial views alone (no round, no saved ensemble), then one round more, then another.
     _run(source, tmp_path / "r", budget=2)
     short = _run(source, tmp_path / "r", budget=3)
-    extended = _run(source, tmp_path / "r", budget=4)
+    # Made with another Mitsuba: going on says so, as a resumed run does.
+    (tmp_path / "r" / "run.json").write_text(json.dumps({**short, "versions": {**short["versions"], "mitsuba": "0"}}))
+    with pytest.warns(UserWarning, match="was started with mitsuba 0; it goes on with mitsuba "):
+        extended = _run(source, tmp_path / "r", budget=4)
+    assert extended["resumed_with"] == [short["versions"]]
     fresh = _run(source, tmp_path / "fresh", budget=4)
     assert extended["finished"] and extended["captured"][:3] == short["captured"]
     assert extended["captured"] == fresh["captured"]
@@ -141,6 +145,20 @@ def test_a_finished_run_goes_on_to_a_larger_budget(source, tmp_path):
     with pytest.raises(UserError, match=r"other settings \(budget: 4 -> 3: fewer than the 4 views it has "
                                         r"captured\)"):
         _run(source, tmp_path / "r", budget=3)
+
+
+def test_a_run_taken_on_after_a_short_round_says_its_rounds_differ(source, tmp_path):
+    def run(budget):
+        lines = []
+        cfg = RunConfig(scene=str(source.scene.path), planner="even", **{**TINY, "budget": budget, "batch": 2})
+        Run(source, cfg, tmp_path / "r", progress=False, log=lines.append).execute()
+        return lines
+
+    run(3)  # 2 initial views, then a round of 1
+    lines = run(5)
+    assert "resuming" in lines[0] and "3 of 5 views captured (the budget was 3)" in lines[0], lines
+    assert lines[1] == ("note: its last round captured fewer than 2 views, so its rounds from here differ from "
+                        "those of a run made with a budget of 5 from the start"), lines
 
 
 def test_ensemble_size_counts_only_where_a_planner_trains_one(source, tmp_path):
@@ -271,15 +289,19 @@ def test_resume_refuses_a_changed_scene(source, tmp_path, spot_xml):
         _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])
     # Other held-out views would make the metrics of the two sittings incomparable.
     rec["content_hash"] = content_hash
-    rec["heldout"] = rec["heldout"][:1]
-    (tmp_path / "r" / "run.json").write_text(json.dumps(rec))
+    (tmp_path / "r" / "run.json").write_text(json.dumps({**rec, "heldout": rec["heldout"][:1]}))
     with pytest.raises(UserError, match="changed"):
         _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])
     # A record edited by hand, naming a view the scene has no candidate for.
     for captured in ([0, 99], [0, "1"], None):
         (tmp_path / "r" / "run.json").write_text(json.dumps({**rec, "captured": captured}))
-        with pytest.raises(UserError, match=r"run.json is damaged \(its captured views are not 10 candidates'"):
+        with pytest.raises(UserError, match=r"run.json is damaged \(its captured views are not indices of its 10 "
+                                            r"candidates\)"):
             _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])
+    # Other candidates in the scene are not a damaged record, and are refused as such.
+    fewer = tiny_source(spot_xml, n_candidates=6, n_heldout=3, resolution=16)
+    with pytest.raises(UserError, match=r"other settings \(candidates: 10 -> 6\)"):
+        _run(fewer, tmp_path / "r", planner="even", budget=3, eval_views=[3], candidates=6)
 
 
 def test_plan_command_end_to_end(spot_xml, tmp_path):

@@ -291,7 +291,8 @@ def planner_digest(name: str) -> str | None:
     """SHA-256 of the file a planner of the user's own comes from, as its code
     was loaded (only that file: not the modules it imports); None for the
     package's planners. Recorded in run.json: a run is not resumed, nor
-    counted in a suite, with other code."""
+    counted in a suite, with other code (one that stopped before its planner
+    chose a view starts over, see :func:`~mitsuba_active.run.other_planner_code`)."""
     where = _parse(name)[0] if isinstance(name, str) else None
     if where is None:
         return None

@@ -423,6 +423,8 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
     (:func:`parse_overrides`) change every run's settings."""
     from tqdm import tqdm
 
+    from .run import ends_short_of_a_batch
+
     suite = load_suite(suite_path)
     out_dir = Path(out_dir)
     if workers < 1:
@@ -439,8 +441,8 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
     if grown:
         log(f"{len(grown)} of the suite's runs finished earlier with a smaller budget: they go on from the views "
             "they have")
-        short = sum(bool((len(rec.get("captured") or []) - job.config["initial_views"]) % job.config["batch"])
-                    for job, rec in grown)
+        short = sum(ends_short_of_a_batch(len(rec.get("captured") or []), job.config["initial_views"],
+                                          job.config["batch"]) for job, rec in grown)
         if short:
             log(f"note: in {short} of them the last round captured fewer views than a batch, so their rounds from "
                 "here differ from those of runs made with this budget from the start")
@@ -731,11 +733,11 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
 def _overrides_note(overrides: dict) -> str:
     """A sentence naming the settings ``--set`` changed for every run ('' when none),
     so that a table copied elsewhere keeps them."""
-    flat = [f"{k}.{name}={v!r}" if isinstance(v, str) else f"{k}.{name}={v}"
-            for k, table in overrides.items() if isinstance(table, dict) for name, v in table.items()]
-    flat += [f"{k}={v!r}" if isinstance(v, str) else f"{k}={v}" for k, v in overrides.items()
-             if not isinstance(v, dict)]
-    return f" Every run with --set {', '.join(sorted(flat))}." if flat else ""
+    settings = [(f"{k}.{name}", v) for k, table in overrides.items() if isinstance(table, dict)
+                for name, v in table.items()]
+    settings += [(k, v) for k, v in overrides.items() if not isinstance(v, dict)]
+    flat = sorted(f"{k}={v!r}" if isinstance(v, str) else f"{k}={v}" for k, v in settings)
+    return f" Every run with --set {', '.join(flat)}." if flat else ""
 
 
 def _fmt(s: dict) -> str:
@@ -813,8 +815,6 @@ def scene_means(summary: dict, scenes, planners, metric: str) -> dict:
     def paired(s, p, b, v):
         """(p's, b's) value on scene s over the seeds both have, or None."""
         key, cp, cb = f"{metric}@{v}", cells[(s, p)], cells[(s, b)]
-        if "per_seed" not in cp or "per_seed" not in cb:  # a summary without per-seed values
-            return value(s, p, v), value(s, b, v)
         common = [k for k in cp["per_seed"] if k in cb["per_seed"]
                   and cp["per_seed"][k].get(key) is not None and cb["per_seed"][k].get(key) is not None]
         if not common:

@@ -293,6 +293,13 @@ def conflicting_settings(rec: dict, current: dict, compare_scene: bool = True) -
     return lines
 
 
+def ends_short_of_a_batch(captured: int, initial_views: int, batch: int) -> bool:
+    """Whether a run that has ``captured`` views ended with a round of fewer than
+    ``batch`` views (its budget cut the round short): taken on to a larger budget,
+    its rounds then differ from those of a run made with that budget from the start."""
+    return bool((captured - min(initial_views, captured)) % batch)
+
+
 def other_planner_code(rec: dict, digest) -> bool:
     """Whether a run record was made with other code of its planner (``digest``:
     the code's now, see :func:`~mitsuba_active.planners.base.planner_digest`)
@@ -531,7 +538,7 @@ class Run:
             if budget != self.cfg.budget:  # the run goes on to (or ends at) another budget
                 self._budget_was = budget
                 rec.setdefault("budget_changes", []).append(
-                    {"from": budget, "to": self.cfg.budget, "views": len(rec["captured"])})
+                    {"from": budget, "to": self.cfg.budget, "views": len(captured)})
                 rec["config"]["budget"] = self.cfg.budget
                 rec["finished"] = False  # a finished run only takes a larger budget
             now = self.versions
@@ -629,7 +636,7 @@ class Run:
             n = len(self.env.captured)
             self.log(f"resuming {self.out}: {n} of {cfg.budget} views captured"
                      + (f" (the budget was {self._budget_was})" if self._budget_was is not None else ""))
-            if self._budget_was is not None and (n - min(cfg.initial_views, n)) % cfg.batch:
+            if self._budget_was is not None and ends_short_of_a_batch(n, cfg.initial_views, cfg.batch):
                 self.log(f"note: its last round captured fewer than {cfg.batch} views, so its rounds from here "
                          f"differ from those of a run made with a budget of {cfg.budget} from the start")
         else:

@@ -60,9 +60,9 @@ def test_scene_means_margins_and_wins_by_hand():
     from mitsuba_active.bench import _mean_table, scene_means
 
     def cell(scene, planner, psnr10, psnr20, err):
-        return {"scene": scene, "planner": planner,
-                "psnr@10": {"iqm": psnr10}, "psnr@20": {"iqm": psnr20},
-                "distance_error@10": {"iqm": err}, "distance_error@20": {"iqm": err}}
+        values = {"psnr@10": psnr10, "psnr@20": psnr20, "distance_error@10": err, "distance_error@20": err}
+        return {"scene": scene, "planner": planner, **{k: {"iqm": x} for k, x in values.items()},
+                "per_seed": {"0": values}}
 
     summary = {"cells": [cell("a", "random", 20, 24, 5.0), cell("a", "even", 21, 25, 4.0), cell("a", "rfe", 23, 24, 6.0),
                          cell("b", "random", 30, 34, 3.0), cell("b", "even", 29, 36, 3.5), cell("b", "rfe", 30.5, 37, 2.0),
@@ -87,16 +87,16 @@ def test_scene_means_margins_and_wins_by_hand():
 def test_scene_means_while_a_suite_is_still_running():
     from mitsuba_active.bench import _mean_table, scene_means
 
-    def cell(scene, planner, psnr, seeds=3):
-        st = {"iqm": psnr}
-        return {"scene": scene, "planner": planner, "seeds": seeds, "psnr@10": st, "psnr@20": st}
+    def cell(scene, planner, psnr, seeds=3, psnr20="same"):
+        psnr20 = psnr if psnr20 == "same" else psnr20
+        return {"scene": scene, "planner": planner, "seeds": seeds, "psnr@10": {"iqm": psnr},
+                "psnr@20": {"iqm": psnr20}, "per_seed": {"0": {"psnr@10": psnr, "psnr@20": psnr20}}}
 
-    none = {"iqm": None}
     summary = {"cells": [cell("a", "even", 20), cell("a", "rfe", 21, seeds=2),
                          cell("b", "even", 30), cell("b", "rfe", 33),
                          # fisher has finished nothing yet; rfe has no 20-view result on c.
-                         cell("a", "fisher", None) | {"psnr@10": none, "psnr@20": none},
-                         cell("c", "even", 25), cell("c", "rfe", 26) | {"psnr@20": none}]}
+                         cell("a", "fisher", None),
+                         cell("c", "even", 25), cell("c", "rfe", 26, psnr20=None)]}
     planners = ["even", "rfe", "fisher"]
     m = scene_means(summary, ["a", "b", "c"], planners, "psnr")
     assert m["rfe"]["scenes"] == 2 and m["rfe"]["vs_even@10"] == pytest.approx(2.0)

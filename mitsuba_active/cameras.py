@@ -19,7 +19,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from .checks import is_number
+from .checks import is_number, is_whole
 from .errors import UserError
 
 #: Most pixels of a camera's image (4096x4096): one image's rays are one batch.
@@ -326,6 +326,11 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     """
     if rig not in RIG_KINDS:
         raise UserError(f"unknown rig '{rig}'; choose one of {', '.join(RIG_KINDS)}")
+    for what, n in (("candidate", n_candidates), ("held-out", n_heldout)):  # image sizes: Camera checks them
+        if not is_whole(n) or n < 1:
+            raise UserError(f"the number of {what} views must be a whole number >= 1, got {n!r}")
+    if fov is not None and not is_number(fov):
+        raise UserError(f"the field of view must be a number of degrees, got {fov!r}")
     for what, n in (("candidate", n_candidates), ("held-out", n_heldout)):
         if n > MAX_VIEWS:
             raise UserError(f"{n} {what} views are more than a rig makes (at most {MAX_VIEWS})")

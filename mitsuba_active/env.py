@@ -49,7 +49,8 @@ class SceneSource:
         scene: a loaded :class:`~mitsuba_active.scene.Scene`.
         candidates, heldout: camera lists (see :func:`~mitsuba_active.cameras.scene_rigs`).
         spp: samples per pixel of the ground-truth renders.
-        cache_dir: EXR cache folder (see :class:`~mitsuba_active.groundtruth.GroundTruth`).
+        cache_dir: EXR cache folder (see :class:`~mitsuba_active.groundtruth.GroundTruth`);
+            a scene built in Python has no files to key a cache by, and is never cached.
     """
 
     has_distance = True  # rendered: every view has its distances
@@ -60,7 +61,7 @@ class SceneSource:
         self.name = scene.path.stem
         self.candidates, self.heldout = list(candidates), list(heldout)
         self.bbox_min, self.bbox_max = scene.bbox_min, scene.bbox_max
-        self.groundtruth = GroundTruth(scene, spp=spp, cache_dir=cache_dir)
+        self.groundtruth = GroundTruth(scene, spp=spp, cache_dir=False if scene.content_hash is None else cache_dir)
 
     @classmethod
     def from_xml(cls, xml_path, rig="auto", n_candidates=100, n_heldout=20, resolution=64, fov=None,
@@ -72,7 +73,25 @@ class SceneSource:
         """
         from .scene import load_scene
 
-        scene = load_scene(xml_path)
+        return cls.from_scene(load_scene(xml_path), rig, n_candidates, n_heldout, resolution, fov, spp, cache_dir)
+
+    @classmethod
+    def from_mitsuba(cls, scene, name="scene", rig="auto", n_candidates=100, n_heldout=20, resolution=64,
+                     fov=None, spp=64):
+        """A scene built in Python, a ``mitsuba.Scene`` or a scene dict, with
+        rigs made as :meth:`from_xml` makes them. Its views are rendered
+        whenever asked for (there are no files to key a cache by); ``name``
+        names it in messages (see :func:`~mitsuba_active.scene.scene_from_mitsuba`).
+        """
+        from .scene import scene_from_mitsuba
+
+        return cls.from_scene(scene_from_mitsuba(scene, name), rig, n_candidates, n_heldout, resolution, fov, spp)
+
+    @classmethod
+    def from_scene(cls, scene, rig="auto", n_candidates=100, n_heldout=20, resolution=64, fov=None, spp=64,
+                   cache_dir=None):
+        """A loaded :class:`~mitsuba_active.scene.Scene` with rigs made by
+        :func:`~mitsuba_active.cameras.scene_rigs`."""
         cands, held = scene_rigs(scene, rig, n_candidates, n_heldout, resolution, None, fov)
         return cls(scene, cands, held, spp=spp, cache_dir=cache_dir)
 
@@ -157,8 +176,10 @@ class ActiveViewEnv(gym.Env):
         ``terminated`` once ``budget`` views are captured; never truncated.
         Capturing a view again (a repeated action) uses up budget again.
         """
-        if not self.action_space.contains(action):
-            raise UserError(f"invalid action {action}; expected a candidate index in [0, {self.action_space.n})")
+        # gymnasium's Discrete takes True for 1 and "3" for nothing: name them as given.
+        if isinstance(action, (bool, np.bool_)) or not self.action_space.contains(action):
+            raise UserError(f"invalid action {action!r}; expected a candidate index (a whole number) "
+                            f"in [0, {self.action_space.n})")
         if self.terminated:
             raise UserError("the view budget is spent; call reset()")
         view = self._capture(int(action))

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import Camera, sensor_rays_dr
+from .checks import is_whole
 from .errors import UserError
 from .imageio_utils import linear_to_srgb, read_exr, write_exr
 from .variant import require_variant
@@ -106,8 +107,8 @@ class GroundTruth:
     """
 
     def __init__(self, scene, spp: int = 64, cache_dir=None):
-        if int(spp) <= 0:
-            raise UserError(f"samples per pixel must be positive, got {spp}")
+        if not is_whole(spp) or spp <= 0:
+            raise UserError(f"samples per pixel must be a whole number >= 1, got {spp!r}")
         self.scene = scene
         self.spp = int(spp)
         self.cache_dir = None if cache_dir is False else Path(cache_dir or default_cache_dir())

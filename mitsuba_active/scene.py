@@ -23,6 +23,7 @@ import numpy as np
 from .checks import is_number, is_whole
 from .errors import UserError
 from .imageio_utils import new_entries, remove_new
+from .variant import require_variant
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
 TEXTURE_NAMES = ("{stem}_texture.png", "{stem}_texture.jpg", "{stem}.png", "{stem}.jpg", "{stem}_diffuse.png")
@@ -293,10 +294,11 @@ class Scene:
     """A loaded Mitsuba scene and what the planner needs to know about it.
 
     Attributes:
-        path: the XML file.
+        path: the XML file (for a scene built in Python, its name).
         mi_scene: the ``mitsuba.Scene``.
         bbox_min, bbox_max: (3,) float64 scene bounds in scene units.
-        content_hash: hex digest of the XML and every file it references.
+        content_hash: hex digest of the XML and every file it references;
+            None for a scene built in Python (:func:`scene_from_mitsuba`).
         interior: True when the scene is a room seen from inside.
         sensors: the XML's own perspective sensors as :class:`Camera` objects.
         up: (3,) world up axis, taken from the first sensor's up vector
@@ -309,7 +311,7 @@ class Scene:
     mi_scene: object
     bbox_min: np.ndarray
     bbox_max: np.ndarray
-    content_hash: str
+    content_hash: str | None
     interior: bool = False
     sensors: list = field(default_factory=list)
     up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
@@ -431,10 +433,10 @@ def load_scene(xml_path, **params) -> Scene:
 
     ``params`` are passed to ``mitsuba.load_file`` (XML ``$`` defaults).
     """
-    import mitsuba as mi
-
-    from .cameras import Camera, snapped_up
-
+    require_variant("loading a scene")
+    if not isinstance(xml_path, (str, os.PathLike)):
+        raise UserError(f"a scene XML is named by its path, got {type(xml_path).__name__}; a scene built in "
+                        "Python (a mitsuba.Scene or a scene dict) is read with scene_from_mitsuba")
     xml_path = Path(xml_path)
     if xml_path.is_dir():
         raise UserError(f"{xml_path} is a folder, not a scene XML file (a transforms.json dataset is read "
@@ -446,10 +448,45 @@ def load_scene(xml_path, **params) -> Scene:
                         f"'mitsuba-active scene {xml_path} -o scene.xml'")
     refs = _referenced_files(xml_path)
     mi_scene = _load_mitsuba(xml_path, **params)
+    return _describe(mi_scene, xml_path, content_hash(xml_path, refs, **params))
+
+
+def scene_from_mitsuba(scene, name: str = "scene") -> Scene:
+    """A :class:`Scene` of a scene built in Python: a ``mitsuba.Scene``, or a
+    scene dict as ``mitsuba.load_dict`` takes it.
+
+    Such a scene has no files to hash: its ``content_hash`` is None, so its
+    ground truth is rendered anew rather than cached on disk, and a
+    :class:`~mitsuba_active.run.Run` (which records a scene by its file)
+    does not take it. ``name`` stands for the file in messages and is the
+    view source's name.
+    """
+    import mitsuba as mi
+
+    require_variant("loading a scene")
+    given = type(scene).__name__
+    if isinstance(scene, dict):
+        try:
+            scene = mi.load_dict(scene)
+        except Exception as exc:
+            raise UserError(f"Mitsuba cannot load the scene dict {name}: {_one_line(exc)}") from None
+        given = f"a dict of a {type(scene).__name__} (its 'type' must be 'scene')"
+    if not isinstance(scene, mi.Scene):
+        raise UserError(f"scene_from_mitsuba takes a mitsuba.Scene or a scene dict, got {given}")
+    return _describe(scene, Path(name), None)
+
+
+def _describe(mi_scene, xml_path: Path, digest: str | None) -> Scene:
+    """The :class:`Scene` of a loaded Mitsuba scene (``xml_path`` names it in
+    messages); UserError when it has no shapes or unusable bounds."""
+    import mitsuba as mi
+
+    from .cameras import Camera, snapped_up
+
     if len(mi_scene.shapes()) == 0:
         raise UserError(f"scene {xml_path} has no shapes")
     if len(mi_scene.emitters()) == 0:
-        warnings.warn(f"scene {xml_path} has no lights: every view renders black", stacklevel=2)
+        warnings.warn(f"scene {xml_path} has no lights: every view renders black", stacklevel=3)
     bbox = mi_scene.bbox()
     lo, hi = np.array(bbox.min, dtype=np.float64), np.array(bbox.max, dtype=np.float64)
     if not (np.isfinite(lo).all() and np.isfinite(hi).all()) or np.max(hi - lo) <= 0:
@@ -459,7 +496,6 @@ def load_scene(xml_path, **params) -> Scene:
         # Squared distances (variances, errors) would overflow single precision.
         raise UserError(f"scene {xml_path} reaches {size:.3g} scene units from the origin, more than "
                         f"{MAX_SCENE_COORDINATE:.0e}; scale it down")
-    digest = content_hash(xml_path, refs, **params)
     sensors = []
     for s in mi_scene.sensors():
         sensor_params = mi.traverse(s)

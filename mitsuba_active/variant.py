@@ -141,8 +141,25 @@ def set_variant(name: str | None = None) -> str:
             # (scalar, spectral...): its Mitsuba objects and types stay in that one.
             warnings.warn(f"mitsuba-active switched Mitsuba from variant '{current}' to '{name}' "
                           f"(it needs one of {', '.join(VARIANTS)}); objects made under '{current}' "
-                          "do not mix with it", stacklevel=2)
+                          "do not mix with it", stacklevel=_outside_stacklevel())
     return name
+
+
+def _outside_stacklevel() -> int:
+    """``stacklevel`` of a warning raised by this function's caller that
+    names the first line outside this package: the pipeline's line that
+    imported the package. (``warnings`` itself passes over the frames of
+    Python's import machinery, so only the package's own frames count.)"""
+    package = os.path.dirname(os.path.abspath(__file__))
+    level, frame = 2, sys._getframe(2)
+    while frame is not None:
+        name = frame.f_code.co_filename
+        if name.startswith(package):
+            level += 1
+        elif not ("importlib" in name and "_bootstrap" in name):
+            break
+        frame = frame.f_back
+    return level
 
 
 def require_variant(what: str) -> None:

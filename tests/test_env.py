@@ -1,3 +1,5 @@
+import re
+
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
@@ -144,3 +146,71 @@ def test_wide_images_keep_the_whole_object_in_view(sphere_xml):
             half_y = np.arctan(np.tan(half_x) * height / width)
             seen = np.arcsin(scene.radius / np.linalg.norm(cam.position - scene.center))
             assert seen < min(half_x, half_y)
+
+
+BALL_XML = '<scene version="3.0.0"><shape type="sphere"/><emitter type="constant"/></scene>'
+BALL_DICT = {"type": "scene", "ball": {"type": "sphere"}, "light": {"type": "constant"}}
+
+
+def test_a_scene_built_in_python_is_a_view_source(tmp_path, monkeypatch):
+    import mitsuba as mi
+
+    from mitsuba_active.env import SceneSource
+
+    monkeypatch.setenv("MITSUBA_ACTIVE_CACHE", str(tmp_path / "cache"))
+    (tmp_path / "ball.xml").write_text(BALL_XML)
+    kw = dict(n_candidates=4, n_heldout=2, resolution=12, spp=4)
+    from_file = SceneSource.from_xml(tmp_path / "ball.xml", **kw)
+    for scene in (BALL_DICT, mi.load_dict(BALL_DICT)):
+        source = SceneSource.from_mitsuba(scene, name="ball", **kw)
+        assert source.name == "ball" and source.scene.content_hash is None
+        assert np.allclose(source.bbox_min, from_file.bbox_min) and np.allclose(source.bbox_max, from_file.bbox_max)
+        obs, info = ActiveViewEnv(source, budget=2).reset(seed=0, options={"initial_views": 1})
+        view = from_file.candidate_view(info["captured"][0])
+        assert np.array_equal(obs["distance"], view.distance)  # the same cameras see the same ball
+        assert abs(float(obs["rgb"].mean()) - float(view.rgb.mean())) < 0.05
+    # Nothing on disk keys a scene in memory: its views are never cached.
+    cached = sorted((tmp_path / "cache").rglob("*.exr"))
+    assert len(cached) == 1  # the XML's view (the same index both times), none of the Python scenes'
+
+
+@pytest.mark.parametrize("scene, message", [
+    (42, "takes a mitsuba.Scene or a scene dict, got int"),
+    ({"type": "sphere"}, "got a dict of a .* \\(its 'type' must be 'scene'\\)"),
+    ({"type": "scene", "ball": {"type": "no-such-shape"}}, "Mitsuba cannot load the scene dict ball: "),
+    ({"type": "scene", "light": {"type": "constant"}}, "scene ball has no shapes"),
+])
+def test_a_scene_built_in_python_that_is_no_scene_is_refused(scene, message):
+    from mitsuba_active.scene import scene_from_mitsuba
+
+    with pytest.raises(UserError, match=message):
+        scene_from_mitsuba(scene, name="ball")
+
+
+def test_a_scene_dict_given_for_an_xml_says_how_to_read_it():
+    from mitsuba_active.env import SceneSource
+
+    with pytest.raises(UserError, match="got dict; a scene built in Python .* scene_from_mitsuba"):
+        SceneSource.from_xml(BALL_DICT)
+
+
+@pytest.mark.parametrize("kw, message", [
+    (dict(n_candidates=7.5), "number of candidate views must be a whole number >= 1, got 7.5"),
+    (dict(n_heldout="2"), "number of held-out views must be a whole number >= 1, got '2'"),
+    (dict(resolution=2.5), "image width and height must be whole numbers of pixels"),
+    (dict(fov="40"), "field of view must be a number of degrees, got '40'"),
+    (dict(spp=4.7), "samples per pixel must be a whole number >= 1, got 4.7"),
+])
+def test_view_source_settings_of_the_wrong_type_are_named(kw, message):
+    from mitsuba_active.env import SceneSource
+
+    with pytest.raises(UserError, match=message):
+        SceneSource.from_mitsuba(BALL_DICT, **{**dict(n_candidates=4, n_heldout=2, resolution=8, spp=1), **kw})
+
+
+@pytest.mark.parametrize("action", [True, "3", 2.5, -1])
+def test_actions_that_are_no_candidate_index_are_named_as_given(source, action):
+    env = ActiveViewEnv(source, budget=3)
+    env.reset(seed=0)
+    with pytest.raises(UserError, match=f"invalid action {re.escape(repr(action))}; expected a candidate index"):
+        env.step(action)

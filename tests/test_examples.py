@@ -4,6 +4,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from tests.conftest import REPO
 
 
@@ -22,6 +24,16 @@ def test_custom_scene_example(tmp_path):
     assert (tmp_path / "c" / "scene" / "custom.xml").is_file()
 
 
+@pytest.mark.parametrize("planner", ["rfe", "even"])
+def test_planning_loop_example(planner):
+    out = _run("planning_loop.py", "--planner", planner)
+    last = out.strip().splitlines()[-1]
+    captured = json.loads(last.split("captured ")[1].split(";")[0])
+    assert last.startswith(f"{planner}: captured") and "held-out PSNR" in last
+    assert len(captured) == 4 and len(set(captured)) == 4  # 2 initial views, then 2 distinct picks
+    assert out.count("views: captured candidate") == 2 and ("best of 12" in out) == (planner == "rfe")
+
+
 def test_compare_planners_example(tmp_path):
     mine = f"{REPO / 'examples' / 'custom_planner.py'}:NoveltyWeightedVariance"
     out = _run("compare_planners.py", "--out", str(tmp_path / "p"), "--planners", "rfe", "even", mine)
@@ -35,7 +47,6 @@ def test_the_example_planner_weighs_variance_by_novelty():
     from types import SimpleNamespace
 
     import numpy as np
-    import pytest
 
     from mitsuba_active.cameras import fibonacci_sphere
     from mitsuba_active.errors import UserError

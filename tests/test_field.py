@@ -339,6 +339,22 @@ def test_counts_and_boxes_are_checked():
             ens.train(steps)
     with pytest.raises(UserError, match="probes must be a whole number >= 1"):
         ens.fisher_diag(o, d, probes=0)
+    for member in (1.0, 1, -1, True):  # 1.0 and True are no member's index either
+        with pytest.raises(UserError, match=f"member must be a whole number in \\[0, 1\\), got {member!r}"):
+            ens.fisher_diag(o, d, member=member)
+    with pytest.raises(UserError, match="config must be a FieldConfig .* got dict"):
+        Ensemble(*BOX, n_members=1, config={"n_levels": 2})
+
+
+def test_colour_only_rays_train_without_distances_and_counts_name_the_argument():
+    o, d, c, dist, hit = views([[0.0, 0.3, 2.2]], width=4, height=4)
+    ens = Ensemble(*BOX, n_members=1, config=tiny_config(), seed=0)
+    ens.set_rays(o, d, c, None, hit)
+    assert np.isfinite(ens.train(2)).all()
+    with pytest.raises(UserError, match="distance is None, but the distance loss .* needs the rays' distances"):
+        Ensemble(*BOX, n_members=1, config=tiny_config(distance_weight=0.5), seed=0).set_rays(o, d, c, None, hit)
+    with pytest.raises(UserError, match="set_rays: hit describes 15 rays, origins and directions 16"):
+        ens.set_rays(o, d, c, dist, np.asarray(hit)[1:])
 
 
 def test_save_to_a_path_it_cannot_write_is_one_line_and_leaves_nothing(tmp_path):

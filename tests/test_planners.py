@@ -1,3 +1,5 @@
+import sys
+
 import numpy as np
 import pytest
 
@@ -98,7 +100,8 @@ def test_a_batch_larger_than_the_views_left_names_both_counts(name):
     # fisher is refused before it computes any Fisher information (no ensemble is needed to say so).
     from types import SimpleNamespace
 
-    state = PlanningState(CANDS, list(range(11)), ensemble=SimpleNamespace(n_members=1), candidate_rays=(None, None),
+    rays = np.zeros((len(CANDS), 1, 3), np.float32)
+    state = PlanningState(CANDS, list(range(11)), ensemble=SimpleNamespace(n_members=1), candidate_rays=(rays, rays),
                           rng=np.random.default_rng(0))
     with pytest.raises(UserError, match="only 1 candidate views are left to choose from, asked for 2"):
         make_planner(name).select(state, 2)
@@ -106,8 +109,32 @@ def test_a_batch_larger_than_the_views_left_names_both_counts(name):
 
 @pytest.mark.parametrize("name", ["rfe", "fisher"])
 def test_scoring_planners_say_what_the_state_lacks(name):
+    from types import SimpleNamespace
+
     with pytest.raises(UserError, match=f"the {name} planner .* has no ensemble and no candidate_rays"):
         make_planner(name).select(PlanningState(CANDS, [0]), 1)
+    rays = np.zeros((len(CANDS), 4, 3), np.float32)
+    for bad, got in (((list(rays), rays), "'list'"), ((rays.reshape(-1, 3), rays.reshape(-1, 3)), "\\(48, 3\\)"),
+                     ((rays[:3], rays[:3]), "\\(3, 4, 3\\)"), (rays, "ndarray")):
+        state = PlanningState(CANDS, [0], ensemble=SimpleNamespace(n_members=2), candidate_rays=bad)
+        with pytest.raises(UserError, match=f"needs candidate_rays = \\(origins, directions\\), two numpy arrays "
+                                            f"of shape \\(C, R, 3\\) for the C = 12 candidates, got .*({got})"):
+            make_planner(name).select(state, 1)
+
+
+def test_a_planning_state_without_a_generator_repeats_its_picks():
+    picks = [make_planner(name).select(PlanningState(CANDS, [0]), 2)[0] for name in ("even", "random") for _ in "ab"]
+    assert picks[0] == picks[1] and picks[2] == picks[3]
+
+
+def test_greedy_top_and_planner_names_say_what_is_wrong():
+    from mitsuba_active.planners import greedy_top
+    from mitsuba_active.planners.rfe import RFEPlanner
+
+    with pytest.raises(UserError, match=r"scores and allowed must both be \(C,\) arrays.*\(2,\) and \(3,\)"):
+        greedy_top([0.1, 0.5], np.array([1, 1, 1]), 1)
+    with pytest.raises(UserError, match="got <class .*RFEPlanner'>; register RFEPlanner with @register"):
+        make_planner(RFEPlanner)
 
 
 PLANNER_FILE = '''
@@ -250,6 +277,26 @@ def test_registering_a_planner_by_name():
         with pytest.raises(UserError, match=message):
             register(type("Other", (Mine,), {"name": name}))
     assert REGISTRY["rfe"].__name__ == "RFEPlanner"
+
+
+def test_a_file_that_registers_a_planner_can_also_be_named_as_a_file(tmp_path, monkeypatch):
+    from mitsuba_active.planners.base import REGISTRY
+
+    (tmp_path / "registering_planners.py").write_text(
+        "from mitsuba_active.planners import Planner, register\n\n"
+        "@register\nclass Sweep(Planner):\n    name = 'sweep_for_a_test'\n\n"
+        "    def select(self, state, batch):\n        return [0], None\n\n"
+        "class Other(Planner):\n    def select(self, state, batch):\n        return [1], None\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    try:
+        import registering_planners  # noqa: F401  (registers 'sweep_for_a_test')
+
+        # The same file loaded again as FILE.py:CLASS defines the same classes, not rivals.
+        assert make_planner(f"{tmp_path / 'registering_planners.py'}:Other").select(None, 1) == ([1], None)
+        assert make_planner("sweep_for_a_test").select(None, 1) == ([0], None)
+    finally:
+        REGISTRY.pop("sweep_for_a_test", None)
+        sys.modules.pop("registering_planners", None)
 
 
 @pytest.mark.parametrize("answer, message", [

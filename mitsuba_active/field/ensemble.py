@@ -94,6 +94,9 @@ class Ensemble:
     def __init__(self, bbox_min, bbox_max, n_members: int = 4,
                  config: FieldConfig | None = None, seed: int = 0):
         require_variant("Ensemble")
+        if config is not None and not isinstance(config, FieldConfig):
+            raise UserError(f"Ensemble: config must be a FieldConfig (e.g. FieldConfig(n_levels=2)), "
+                            f"got {type(config).__name__}")
         self.config = config if config is not None else FieldConfig()
         self.bbox_min, self.bbox_max = (_point(p, "Ensemble", name) for p, name in ((bbox_min, "bbox_min"),
                                                                                       (bbox_max, "bbox_max")))
@@ -175,8 +178,8 @@ class Ensemble:
         return np.array(dr.detach(self._opt[key]), dtype=np.float32)
 
     def _check_member(self, member):
-        if not 0 <= int(member) < self.n_members:
-            raise UserError(f"member {member} out of range [0, {self.n_members})")
+        if not is_whole(member) or not 0 <= member < self.n_members:
+            raise UserError(f"member must be a whole number in [0, {self.n_members}), got {member!r}")
 
     # ------------------------------------------------------------------- data
     def set_rays(self, origins, directions, rgb, distance, hit, reset_occupancy: bool = True):
@@ -185,7 +188,8 @@ class Ensemble:
         Args:
             origins: (M,3) ray origins (scene units), directions: (M,3) unit,
             rgb: (M,3) target colour in [0,1], distance: (M,) metric distance
-            from the origin to the surface (ignored where ``~hit``),
+            from the origin to the surface (ignored where ``~hit``), or None
+            without distances (then ``config.distance_weight`` must be 0),
             hit: (M,) bool.
             reset_occupancy: start the occupancy grid over (new rays may show
                 surfaces where earlier ones saw empty space); False keeps
@@ -195,14 +199,17 @@ class Ensemble:
         o, d = _rays(origins, directions, "set_rays")
         c = _triples(rgb, "set_rays", "rgb")
         m = o.shape[0]
-        dist = np.asarray(distance, np.float32).reshape(-1)
+        if distance is None and self.config.distance_weight > 0:
+            raise UserError("set_rays: distance is None, but the distance loss (config.distance_weight "
+                            f"= {self.config.distance_weight}) needs the rays' distances")
+        dist = np.zeros(m, np.float32) if distance is None else np.asarray(distance, np.float32).reshape(-1)
         h = np.asarray(hit).reshape(-1)
         if h.dtype != bool and not np.isin(h, (0, 1)).all():  # 0.2 would read as a hit
             raise UserError("set_rays: hit must be booleans (or 0 and 1)")
         h = h.astype(bool)
-        if not (c.shape[0] == dist.shape[0] == h.shape[0] == m):
-            raise UserError("set_rays: origins, directions, rgb, distance and hit "
-                            "must describe the same number of rays")
+        for name, n in (("rgb", c.shape[0]), ("distance", dist.shape[0]), ("hit", h.shape[0])):
+            if n != m:
+                raise UserError(f"set_rays: {name} describes {n} rays, origins and directions {m}")
         if m == 0:
             raise UserError("set_rays: no rays")
         if m >= 2**31:

@@ -36,14 +36,23 @@ class PlanningState:
             for planners that do not need one.
         candidate_rays: ``(origins, directions)``, each (C, R, 3) float32: a
             fixed sparse set of R rays per candidate.
-        rng: the run's ``numpy.random.Generator``.
+        rng: the run's ``numpy.random.Generator``; when not given, one seeded
+            with 0, so that a planner's picks repeat from call to call.
     """
 
     candidates: list
     captured: list
     ensemble: object = None
     candidate_rays: tuple | None = None
-    rng: np.random.Generator = field(default_factory=np.random.default_rng)
+    rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
+
+
+def _are_candidate_rays(rays, n_candidates: int) -> bool:
+    """Whether ``rays`` is ``(origins, directions)``: two (C, R, 3) numpy arrays for C candidates."""
+    if not (isinstance(rays, (tuple, list)) and len(rays) == 2 and all(isinstance(a, np.ndarray) for a in rays)):
+        return False
+    o, d = rays
+    return o.shape == d.shape and o.ndim == 3 and o.shape[0] == n_candidates and o.shape[2] == 3
 
 
 class Planner:
@@ -75,6 +84,12 @@ class Planner:
         if missing:
             raise UserError(f"the {self.name} planner scores candidates with an ensemble over their rays; "
                             f"the PlanningState has no {' and no '.join(missing)}")
+        rays, c = state.candidate_rays, len(state.candidates)
+        if not _are_candidate_rays(rays, c):
+            got = ([getattr(a, "shape", type(a).__name__) for a in rays] if isinstance(rays, (tuple, list))
+                   else type(rays).__name__)
+            raise UserError(f"the {self.name} planner needs candidate_rays = (origins, directions), two numpy "
+                            f"arrays of shape (C, R, 3) for the C = {c} candidates, got {got}")
         self.check_ensemble_size(state.ensemble.n_members)
 
     def select(self, state: PlanningState, batch: int) -> tuple[list[int], np.ndarray | None]:
@@ -129,9 +144,12 @@ def greedy_top(scores: np.ndarray, allowed: np.ndarray, batch: int) -> list[int]
     A NaN score (a candidate the model could not score) is never picked; +inf
     ranks first.
     """
-    scores = np.asarray(scores, dtype=np.float64)
+    scores, allowed = np.asarray(scores, dtype=np.float64), np.asarray(allowed, dtype=bool)
+    if scores.ndim != 1 or scores.shape != allowed.shape:
+        raise UserError(f"greedy_top: scores and allowed must both be (C,) arrays, one entry per candidate; "
+                        f"got shapes {scores.shape} and {allowed.shape}")
     check_batch(allowed, batch)
-    ok = np.flatnonzero(np.asarray(allowed, dtype=bool) & ~np.isnan(scores))
+    ok = np.flatnonzero(allowed & ~np.isnan(scores))
     if len(ok) < batch:
         n_left = int(np.count_nonzero(allowed))
         raise UserError(f"only {len(ok)} candidate views are left to choose from, asked for {batch} "
@@ -141,6 +159,14 @@ def greedy_top(scores: np.ndarray, allowed: np.ndarray, batch: int) -> list[int]
 
 
 REGISTRY: dict[str, type] = {}
+
+
+def _origin(cls) -> tuple:
+    """Where a class is defined: its module's file (or, without one, the
+    module's name) and its qualified name. One file imported as a module and
+    loaded as ``FILE.py:CLASS`` gives two modules of the same classes."""
+    file = getattr(sys.modules.get(cls.__module__), "__file__", None)
+    return (str(Path(file).resolve()) if file else cls.__module__, cls.__qualname__)
 
 
 def register(cls):
@@ -153,8 +179,9 @@ def register(cls):
     if taken is not None and taken.__module__.startswith(__name__.rpartition(".")[0] + ".") and taken is not cls:
         raise UserError(f"'{cls.name}' is the name of one of mitsuba-active's planners; "
                         f"give {cls.__name__} another name")
-    # The same class defined again (its module reloaded) takes its name back; another class does not.
-    if taken is not None and (taken.__module__, taken.__qualname__) != (cls.__module__, cls.__qualname__):
+    # The same class defined again (its module reloaded, or its file loaded as FILE.py:CLASS
+    # after an import of it) takes its name back; another class does not.
+    if taken is not None and _origin(taken) != _origin(cls):
         raise UserError(f"'{cls.name}' is the name of the planner {taken.__module__}.{taken.__qualname__} "
                         f"already; give {cls.__name__} another name")
     REGISTRY[cls.name] = cls
@@ -266,7 +293,9 @@ def _load_module(name: str):
 def planner_class(name: str) -> type:
     """The :class:`Planner` subclass that a registered name or a reference names."""
     if not isinstance(name, str) or not name:
-        raise UserError(f"a planner is named by a string (a registered name or FILE.py:CLASS), got {name!r}")
+        hint = (f"; register {name.__name__} with @register and give its name" if inspect.isclass(name)
+                and issubclass(name, Planner) else "")
+        raise UserError(f"a planner is named by a string (a registered name or FILE.py:CLASS), got {name!r}{hint}")
     where, cls_name = _parse(name)
     if where is None:
         if name not in REGISTRY:

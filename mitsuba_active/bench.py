@@ -122,7 +122,7 @@ def load_suite(path) -> Suite:
         raise UserError(f"suite file not found: {path}")
     try:
         data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise UserError(f"malformed suite file {path}: {exc}") from None
     run_fields = _setting_names()
     unknown = set(data) - {"name", "planners", "defaults", "scenes"}
@@ -145,6 +145,10 @@ def load_suite(path) -> Suite:
         except UserError as exc:
             raise UserError(f"{path}: {exc}") from None
     defaults = data.get("defaults", {})
+    if not isinstance(defaults, dict):
+        raise UserError(f"{path}: defaults must be a table of settings ([defaults]), got {defaults!r}")
+    if not (isinstance(data.get("scenes", []), list) and all(isinstance(s, dict) for s in data.get("scenes", []))):
+        raise UserError(f"{path}: scenes must be tables ([[scenes]] with mesh = \"...\" or xml = \"...\")")
     bad = set(defaults) - run_fields
     if bad:
         raise UserError(f"{path}: unknown settings in [defaults]: {', '.join(sorted(bad))}")
@@ -154,6 +158,8 @@ def load_suite(path) -> Suite:
         if ("mesh" in s) == ("xml" in s):
             raise UserError(f"{path}: scene #{i + 1} needs exactly one of 'mesh' or 'xml'")
         kind = "mesh" if "mesh" in s else "xml"
+        if not isinstance(s[kind], str):
+            raise UserError(f"{path}: scene #{i + 1}: {kind} must be a file's path, got {s[kind]!r}")
         name = s.get("name") or Path(s[kind]).stem
         # The name makes folders inside the suite's (scenes/NAME, runs/NAME).
         if not isinstance(name, str) or name in (".", "..") or any(c in name for c in "/\\\0"):

@@ -465,6 +465,14 @@ def _centred_window(c: float, size: int, f: int) -> tuple[int, int]:
     return max(start, 0), length
 
 
+def _focal_from_angle(keys: dict, name: str, size: int, where: str) -> float:
+    """Focal length in pixels from a field-of-view key (radians) across ``size`` pixels."""
+    angle = float(keys[name])
+    if not 0 < angle < math.pi:
+        raise UserError(f"{where}: {name} must be in (0, pi) radians, got {keys[name]}")
+    return 0.5 * size / math.tan(0.5 * angle)
+
+
 def _intrinsics(keys: dict, w: int, h: int, where: str):
     """``(fx, fy, cx, cy)`` in full-resolution pixels; UserError for what a centred pinhole cannot model."""
     for name in ("fl_x", "fl_y", "cx", "cy", "camera_angle_x", "camera_angle_y"):
@@ -481,13 +489,13 @@ def _intrinsics(keys: dict, w: int, h: int, where: str):
     if keys["fl_x"] is not None:
         fx = float(keys["fl_x"])
     elif keys["camera_angle_x"] is not None:
-        fx = 0.5 * w / math.tan(0.5 * float(keys["camera_angle_x"]))
+        fx = _focal_from_angle(keys, "camera_angle_x", w, where)
     else:
         raise UserError(f"{where}: no focal length (needs camera_angle_x or fl_x)")
     if keys["fl_y"] is not None:
         fy = float(keys["fl_y"])
     elif keys["camera_angle_y"] is not None and keys["fl_x"] is None:
-        fy = 0.5 * h / math.tan(0.5 * float(keys["camera_angle_y"]))
+        fy = _focal_from_angle(keys, "camera_angle_y", h, where)
     else:
         fy = fx
     if not (fx > 0 and fy > 0 and math.isfinite(fx) and math.isfinite(fy)):

@@ -20,6 +20,7 @@ import csv
 import json
 import math
 import os
+import re
 import time
 import warnings
 from dataclasses import asdict, dataclass, field, fields
@@ -204,6 +205,9 @@ SPARSE_VIEW_FIELD = {"n_levels": 2, "lr": 0.01}
 #: their initialisation, and where no training ray reaches, that is all they
 #: have: a visible spread is what makes them disagree about unobserved space.
 PLANNER_INIT_SCALE = 2.0
+
+#: Name of the planner's ensemble file in a run folder, after the views it was trained on.
+ENSEMBLE_FILE = re.compile(r"ensemble_\d{3,}\.npz")
 
 #: Below this PSNR of an evaluation field on its own training views (dB),
 #: it has not trained long enough for its held-out scores to compare views:
@@ -527,6 +531,11 @@ class Run:
             if not (isinstance(captured, list) and all(is_whole(i) and 0 <= i < n for i in captured)):  # hand-edited
                 raise UserError(f"{self.record_path} is damaged (its captured views are not indices of its {n} "
                                 "candidates); remove it to start over")
+            # The run replaces (removes) its ensemble file: only ever one of its own.
+            ens_file = rec.get("ensemble_file")
+            if ens_file is not None and not (isinstance(ens_file, str) and ENSEMBLE_FILE.fullmatch(ens_file)):
+                raise UserError(f"{self.record_path} is damaged (its ensemble_file {ens_file!r} is not one of the "
+                                "run's ensemble_NNN.npz files); remove it to start over")
             if other_planner_code(rec, self.planner_digest):
                 raise UserError(f"{self.out} holds a run made with another version of the planner's code "
                                 f"({planner_label(self.cfg.planner)}); choose another run folder (--out), "

@@ -276,10 +276,15 @@ def test_suite_runs_in_worker_processes(tiny_suite, tmp_path):
     # A scene's name makes its folders: it may not lead out of the suite's.
     ("[[scenes]]\nname='../../escaped'\nmesh='x.obj'\n", "name '../../escaped' cannot be a folder's name"),
     ("[[scenes]]\nname='..'\nmesh='x.obj'\n", "cannot be a folder's name"),
+    ("defaults = 3\n[[scenes]]\nmesh='x.obj'\n", "defaults must be a table of settings"),
+    ("scenes = [1, 2]\n", "scenes must be tables"),
+    ("[[scenes]]\nxml = 5\n", "scene #1: xml must be a file's path, got 5"),
+    ("[[scenes]]\nmesh = ['x']\n", "scene #1: mesh must be a file's path"),
+    (b"name = '\xff'\n", "malformed suite file .*utf-8"),
 ])
 def test_bad_suites(tmp_path, text, message):
     bad = tmp_path / "bad.toml"
-    bad.write_text(text)
+    bad.write_bytes(text) if isinstance(text, bytes) else bad.write_text(text)
     with pytest.raises(UserError, match=message):
         load_suite(bad)
 

@@ -318,6 +318,10 @@ def _wordy_focal(root):
     write_dataset(root, n=3, extra={"camera_angle_x": "wide"})
 
 
+def _flat_focal(root):
+    write_dataset(root, n=3, form="blender", extra={"camera_angle_x": 0})
+
+
 def _bad_aabb(root):
     write_dataset(root, n=3, extra={"aabb": [1, 2, 3]})
 
@@ -334,7 +338,7 @@ def _nerfstudio_train_only(root):
     (_bad_json, "not valid JSON"), (_no_frames, "no frames"), (_no_focal, "camera_angle_x or fl_x"),
     (_all_missing, "none of the dataset's image files"), (_bad_matrix, "must be 4x4"),
     (_distorted, "distortion"), (_non_square, "non-square"), (_bad_aabb, "aabb"),
-    (_wordy_focal, "camera_angle_x must be a number"),
+    (_wordy_focal, "camera_angle_x must be a number"), (_flat_focal, "camera_angle_x must be in \\(0, pi\\) radians, got 0"),
     (_no_test_frames, "no held-out frames"), (_nerfstudio_train_only, "no held-out frames"),
 ])
 def test_malformed_datasets_fail_with_one_line(tmp_path, make, message):

@@ -298,6 +298,14 @@ def test_resume_refuses_a_changed_scene(source, tmp_path, spot_xml):
         with pytest.raises(UserError, match=r"run.json is damaged \(its captured views are not indices of its 10 "
                                             r"candidates\)"):
             _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])
+    # An ensemble file outside the run folder: the run would load it, then remove it.
+    (tmp_path / "victim.npz").write_bytes(b"keep me")
+    for name in ("../victim.npz", "views", 3):
+        (tmp_path / "r" / "run.json").write_text(json.dumps({**rec, "ensemble_file": name}))
+        with pytest.raises(UserError, match=r"run.json is damaged \(its ensemble_file .* is not one of the run's "
+                                            r"ensemble_NNN.npz files\)"):
+            _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])
+    assert (tmp_path / "victim.npz").read_bytes() == b"keep me"
     # Other candidates in the scene are not a damaged record, and are refused as such.
     fewer = tiny_source(spot_xml, n_candidates=6, n_heldout=3, resolution=16)
     with pytest.raises(UserError, match=r"other settings \(candidates: 10 -> 6\)"):

@@ -147,14 +147,15 @@ def load_suite(path) -> Suite:
     defaults = data.get("defaults", {})
     if not isinstance(defaults, dict):
         raise UserError(f"{path}: defaults must be a table of settings ([defaults]), got {defaults!r}")
-    if not (isinstance(data.get("scenes", []), list) and all(isinstance(s, dict) for s in data.get("scenes", []))):
+    scene_tables = data.get("scenes", [])
+    if not (isinstance(scene_tables, list) and all(isinstance(s, dict) for s in scene_tables)):
         raise UserError(f"{path}: scenes must be tables ([[scenes]] with mesh = \"...\" or xml = \"...\")")
     bad = set(defaults) - run_fields
     if bad:
         raise UserError(f"{path}: unknown settings in [defaults]: {', '.join(sorted(bad))}")
     _check_tables(path, "[defaults]", defaults)
     scenes = []
-    for i, s in enumerate(data.get("scenes", [])):
+    for i, s in enumerate(scene_tables):
         if ("mesh" in s) == ("xml" in s):
             raise UserError(f"{path}: scene #{i + 1} needs exactly one of 'mesh' or 'xml'")
         kind = "mesh" if "mesh" in s else "xml"

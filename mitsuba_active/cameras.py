@@ -329,11 +329,10 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     for what, n in (("candidate", n_candidates), ("held-out", n_heldout)):  # image sizes: Camera checks them
         if not is_whole(n) or n < 1:
             raise UserError(f"the number of {what} views must be a whole number >= 1, got {n!r}")
-    if fov is not None and not is_number(fov):
-        raise UserError(f"the field of view must be a number of degrees, got {fov!r}")
-    for what, n in (("candidate", n_candidates), ("held-out", n_heldout)):
         if n > MAX_VIEWS:
             raise UserError(f"{n} {what} views are more than a rig makes (at most {MAX_VIEWS})")
+    if fov is not None and not is_number(fov):
+        raise UserError(f"the field of view must be a number of degrees, got {fov!r}")
     if rig == "xml":
         if not scene.sensors:
             raise UserError(f"{scene.path} has no perspective sensor to use as candidates")

@@ -39,8 +39,8 @@ from pathlib import Path
 import numpy as np
 
 from .checks import setting_value
-from .errors import UserError
-from .imageio_utils import folder_name, replaced_folder
+from .errors import FolderInUse, UserError
+from .imageio_utils import folder_name, new_entries, remove_new, replaced_folder
 from .metrics import iqm, standard_error
 
 SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture")
@@ -68,6 +68,8 @@ METRICS = {"psnr": ("Photometric held-out PSNR (dB)", True),
 JOB_KEYS = ("scene", "planner", "seed")
 #: RunConfig fields that are tables: settings merge into them key by key.
 TABLE_KEYS = ("field", "planner_options")
+#: Most --workers per CPU core (each worker trains fields on its share of the cores).
+MAX_WORKERS_PER_CORE = 4
 
 
 @dataclass
@@ -139,6 +141,8 @@ def load_suite(path) -> Suite:
             raise UserError(f"{path}: two planners are named {p.name}")
         planners[p.name] = p  # a planner named twice is one planner
     planners = list(planners.values())
+    if not planners:
+        raise UserError(f"{path}: the suite has no planners (planners = [] runs nothing)")
     for p in planners:  # their options are checked with each job's settings
         try:
             planner_class(p.ref)
@@ -324,6 +328,8 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                     cfg = RunConfig(scene=str(xml), planner=planner.ref, seed=int(seed), **settings)
                     # A generated rig has as many candidates as asked for; the XML's own, as it has.
                     cfg.validate(None if cfg.rig == "xml" else cfg.candidates)
+                    if cfg.downscale is not None:  # a suite's scenes are scenes, never datasets
+                        raise UserError("downscale applies to datasets; a scene renders at its resolution")
                 except UserError as exc:  # e.g. budget = "20"
                     raise UserError(f"scene '{sc.name}': {exc}") from None
                 own = {k: v for k, v in (overrides.get("planner_options") or {}).items()
@@ -356,11 +362,15 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
 
 def _recorded(job: Job) -> dict | None:
     """The run record in the job's folder (finished or not), or None."""
-    try:
-        rec = json.loads((Path(job.out) / "run.json").read_text())
-    except (OSError, ValueError):  # none, or damaged (the run itself says so)
+    from .run import read_record
+
+    path = Path(job.out) / "run.json"
+    if not path.is_file():
         return None
-    return rec if isinstance(rec, dict) else None
+    try:
+        return read_record(path)
+    except UserError:  # damaged: the run itself says so
+        return None
 
 
 def _author_suite_scene(sc, xml: Path, jobs: list[Job]) -> None:
@@ -416,7 +426,20 @@ def run_job(job: Job, threads: int | None = None) -> dict:
         raise UserError(f"the planner's code ({job.planner}) changed while the suite ran; its runs so far "
                         "are kept: undo the change to go on, or use another --out")
     t0 = time.perf_counter()
-    Run(cfg.open_source(), cfg, job.out, progress=False, log=lambda m: None).execute()
+    out = Path(job.out)
+    # Only the job's own folder is new (never a parent another worker's job shares),
+    # and without run.json nothing is there to resume: a failed or stopped start
+    # leaves nothing half-made behind, as `plan` does.
+    out.parent.mkdir(parents=True, exist_ok=True)
+    new = new_entries(out)
+    try:
+        Run(cfg.open_source(), cfg, out, progress=False, log=lambda m: None).execute()
+    except FolderInUse:  # what is in the folder is the other run's
+        raise
+    except BaseException:
+        if not (out / "run.json").is_file():
+            remove_new(out, *new)
+        raise
     return {"job": f"{job.scene}/{job.planner}/{job.seed}", "skipped": False,
             "seconds": round(time.perf_counter() - t0, 1)}
 
@@ -434,8 +457,10 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
 
     suite = load_suite(suite_path)
     out_dir = Path(out_dir)
-    if workers < 1:
-        raise UserError(f"--workers must be at least 1, got {workers}")
+    cores = os.cpu_count() or 1
+    if not 1 <= workers <= MAX_WORKERS_PER_CORE * cores:
+        raise UserError(f"--workers must be between 1 and {MAX_WORKERS_PER_CORE * cores} "
+                        f"({MAX_WORKERS_PER_CORE} per core of this machine's {cores}), got {workers}")
     jobs = plan_jobs(suite, out_dir, profile, seeds, planners, scenes, author=not report_only,
                      overrides=overrides)
     if report_only:
@@ -453,7 +478,8 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
         if short:
             log(f"note: in {short} of them the last round captured fewer views than a batch, so their rounds from "
                 "here differ from those of runs made with this budget from the start")
-    threads = max(1, (os.cpu_count() or 1) // workers)
+    pool_size = max(1, min(workers, len(jobs)))  # a worker without a job would only start and stop
+    threads = max(1, cores // pool_size)
     bar = tqdm(total=len(jobs), desc=f"suite {suite.name}", unit="run", disable=not progress)
     try:
         if workers == 1:
@@ -462,7 +488,7 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
                 run_job(job)
                 bar.update()
         else:
-            _run_in_workers(jobs, workers, threads, bar)
+            _run_in_workers(jobs, pool_size, threads, bar)
     finally:
         bar.close()
     return write_report(suite, jobs, out_dir / "report", profile, overrides)

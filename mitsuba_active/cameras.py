@@ -101,7 +101,13 @@ class Camera:
     _rays: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self):
-        object.__setattr__(self, "to_world", np.asarray(self.to_world, dtype=np.float64).reshape(4, 4))
+        try:
+            to_world = np.asarray(self.to_world, dtype=np.float64).reshape(4, 4)
+        except (TypeError, ValueError):
+            raise UserError("a camera's to_world must be a 4x4 matrix of numbers") from None
+        if not np.isfinite(to_world).all():
+            raise UserError("a camera's to_world must be finite (it holds NaN or infinity)")
+        object.__setattr__(self, "to_world", to_world)
         for name in ("width", "height"):
             value = getattr(self, name)
             if not is_number(value) or not float(value).is_integer():
@@ -113,8 +119,8 @@ class Camera:
         if self.width * self.height > MAX_PIXELS:
             raise UserError(f"images of {self.width}x{self.height} pixels are too large: at most "
                             f"{MAX_PIXELS_TEXT} pixels (a lower resolution, or a dataset's downscale)")
-        if not 0.0 < self.fov < 180.0:
-            raise UserError(f"field of view must be in (0, 180) degrees, got {self.fov}")
+        if not (is_number(self.fov) and 0.0 < self.fov < 180.0):
+            raise UserError(f"field of view must be in (0, 180) degrees, got {self.fov!r}")
 
     @property
     def position(self) -> np.ndarray:
@@ -158,8 +164,10 @@ class Camera:
 
     @staticmethod
     def from_dict(d: dict) -> "Camera":
-        return Camera(np.array(d["to_world"]), d["fov"], d["width"], d["height"],
-                      d.get("near", 1e-3), d.get("far", 1e4))
+        """The camera :meth:`to_dict` wrote; UserError when ``d`` is not one."""
+        if not isinstance(d, dict) or not {"to_world", "fov", "width", "height"} <= set(d):
+            raise UserError("a camera is a table with to_world, fov, width and height")
+        return Camera(d["to_world"], d["fov"], d["width"], d["height"], d.get("near", 1e-3), d.get("far", 1e4))
 
 
 def sensor_rays_dr(sensor, width: int, height: int):

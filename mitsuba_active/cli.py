@@ -26,7 +26,7 @@ with interruptible_imports():  # click and numpy load here, after the package's 
     from click.core import ParameterSource
 
     from .console import mitsuba_log_as_warnings, show_warning
-    from .errors import UserError
+    from .errors import FolderInUse, UserError
     from .imageio_utils import folder_name, new_entries, remove_new
     from .scenes import BUNDLED_SCENE
 
@@ -73,6 +73,12 @@ def _close_progress_bars() -> None:
         bar.close()
 
 
+def _one_line(message: str) -> str:
+    """``message`` on one line: line breaks (in a file's name, or quoted from a
+    library's message) shown as ``\\n``, so that an error is always one line."""
+    return message.replace("\r", "\\r").replace("\n", "\\n")
+
+
 def _one_line_errors(fn):
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -86,10 +92,10 @@ def _one_line_errors(fn):
                     _load_libraries()
                 return fn(*args, **kwargs)
         except UserError as exc:
-            click.echo(f"mitsuba-active: error: {exc}", err=True)
+            click.echo(f"mitsuba-active: error: {_one_line(str(exc))}", err=True)
             sys.exit(2)
         except OSError as exc:  # an output folder that cannot be created or written, a full disk...
-            click.echo(f"mitsuba-active: error: {_os_error_line(exc)}", err=True)
+            click.echo(f"mitsuba-active: error: {_one_line(_os_error_line(exc))}", err=True)
             sys.exit(2)
         except KeyboardInterrupt:
             _close_progress_bars()
@@ -340,6 +346,8 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
         if Path(scene_path).suffix.lower() in MESH_SUFFIXES:
             scene_path = cfg.scene = _author_into_run(scene_path, out)
         record = _plan(cfg, out, quiet, given)
+    except FolderInUse:  # what is in the folder is the other run's
+        raise
     except BaseException:
         # Without run.json there is nothing to resume: leave nothing half-made
         # behind (an existing folder keeps what it held).

@@ -17,3 +17,8 @@ class SetupError(UserError, ImportError):
     it; left uncaught, it ends the program with its one line, not a traceback,
     and exit code 1 (it stops the import, before the command line can run).
     """
+
+
+class FolderInUse(UserError):
+    """A run folder that another run is writing (in this process or another):
+    raised before anything in it is touched, so nothing of the other run's is undone."""

@@ -20,6 +20,7 @@ from .cameras import Camera
 from .datasets import mitsuba_to_opengl
 from .errors import UserError
 from .imageio_utils import atomic_write
+from .run import read_record
 
 
 #: The names of the files an export writes beside transforms.json.
@@ -33,15 +34,9 @@ def export_transforms(run_dir, out_dir=None) -> Path:
     rec_path = run_dir / "run.json"
     if not rec_path.is_file():
         raise UserError(f"{run_dir} is not a run folder (no run.json)")
-    try:
-        rec = json.loads(rec_path.read_text())
-    except json.JSONDecodeError as exc:
-        raise UserError(f"{rec_path} is damaged: {exc}") from None
+    rec = read_record(rec_path)
     out = Path(out_dir) if out_dir else run_dir / "export"
-    try:
-        cams = [Camera.from_dict(rec["candidates"][i]) for i in rec["captured"]]
-    except (KeyError, IndexError, TypeError) as exc:
-        raise UserError(f"{rec_path} is not a run record of this tool ({type(exc).__name__}: {exc})") from None
+    cams = [Camera.from_dict(rec["candidates"][i]) for i in rec["captured"]]
     if not cams:
         raise UserError(f"{run_dir} has no captured views to export")
     if not rec.get("finished"):
@@ -53,6 +48,7 @@ def export_transforms(run_dir, out_dir=None) -> Path:
         raise UserError(f"{run_dir}/views is missing images for views {missing}")
     # A run of a dataset without depth maps has no distances to export.
     distances = rec.get("distances", True)
+    _check_views(run_dir / "views", cams, distances)
     ref = cams[0]
     k = ref.intrinsics()
     # Cameras of their own (rig xml) may differ in field of view: then every
@@ -93,6 +89,28 @@ def export_transforms(run_dir, out_dir=None) -> Path:
     for name in sorted(earlier - now):
         (out / name).unlink(missing_ok=True)
     return path
+
+
+def _check_views(views_dir: Path, cams: list[Camera], distances: bool) -> None:
+    """UserError unless every captured view's image (and distance map) reads
+    as an image of its camera's size: a damaged file is refused, not copied."""
+    import imageio.v3 as iio
+
+    from .imageio_utils import read_exr
+
+    for n, cam in enumerate(cams):
+        files = [(views_dir / f"view_{n:03d}.png", lambda p: iio.imread(p, plugin="pillow").shape[:2])]
+        if distances:
+            files.append((views_dir / f"view_{n:03d}.exr", lambda p: read_exr(p)["Z"].shape))
+        for path, size_of in files:
+            try:
+                size = size_of(path)
+            except Exception as exc:  # noqa: BLE001 (image readers raise many kinds)
+                first = (str(exc).splitlines() or [type(exc).__name__])[0]
+                raise UserError(f"{path} is damaged (it does not read as an image: {first})") from None
+            if tuple(size) != (cam.height, cam.width):
+                raise UserError(f"{path} is damaged: {size[1]}x{size[0]} pixels where its camera has "
+                                f"{cam.width}x{cam.height}")
 
 
 def _exported_files(path: Path) -> set[str]:

@@ -67,6 +67,8 @@ def render_distance(mi_scene, camera: Camera) -> np.ndarray:
 #: as one wavefront, so larger renders are split into passes of fewer samples
 #: per pixel (averaged), lest they run out of memory.
 MAX_PASS_SAMPLES = 1 << 24
+#: Most samples per pixel of ground truth (far beyond a converged render).
+MAX_SPP = 65536
 
 
 def render_rgb(mi_scene, camera: Camera, spp: int, seed: int = 0) -> np.ndarray:
@@ -107,8 +109,8 @@ class GroundTruth:
     """
 
     def __init__(self, scene, spp: int = 64, cache_dir=None):
-        if not is_whole(spp) or spp <= 0:
-            raise UserError(f"samples per pixel must be a whole number >= 1, got {spp!r}")
+        if not is_whole(spp) or not 0 < spp <= MAX_SPP:
+            raise UserError(f"samples per pixel must be a whole number in [1, {MAX_SPP}], got {spp!r}")
         self.scene = scene
         self.spp = int(spp)
         self.cache_dir = None if cache_dir is False else Path(cache_dir or default_cache_dir())

@@ -3,7 +3,8 @@
 Every writer goes through :func:`atomic_write`: the file appears whole under
 its final name or not at all, so an interrupted run leaves nothing half-written.
 :func:`replaced_folder` replaces a folder whole; :func:`new_entries` and
-:func:`remove_new` undo what a failed command added.
+:func:`remove_new` undo what a failed command added; :func:`folder_lock` keeps
+two runs out of one folder.
 """
 
 from __future__ import annotations
@@ -59,6 +60,32 @@ def replaced_folder(path):
     finally:
         for p in (stage, earlier):
             shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def folder_lock(path: Path):
+    """Hold an exclusive lock on the folder ``path`` (which must exist) while
+    the block runs; FolderInUse at once if another holder has it. The lock
+    is the kernel's (``flock`` on the folder itself): no lock file is left
+    behind, and a killed holder releases it. Where there is no ``flock``
+    (Windows), nothing is locked."""
+    from .errors import FolderInUse
+
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover
+        yield
+        return
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise FolderInUse(f"{path} is in use by another run (a plan or bench writing it now); wait for that "
+                              "one to end, or choose another folder") from None
+        yield
+    finally:
+        os.close(fd)  # releases the lock
 
 
 def new_entries(out: Path):

@@ -32,13 +32,16 @@ from .cameras import RIG_KINDS, camera_rays, snapped_up
 from .checks import is_number, is_whole
 from .env import ActiveViewEnv, SceneSource
 from .errors import UserError
-from .groundtruth import View
-from .imageio_utils import atomic_write, colorize, srgb_to_linear, write_exr, write_png
+from .groundtruth import MAX_SPP, View
+from .imageio_utils import atomic_write, colorize, folder_lock, srgb_to_linear, write_exr, write_png
 from .metrics import distance_error, psnr, ssim
 from .planners import PlanningState, make_planner
 from .planners.base import is_planner_file, planner_digest, planner_folder, planner_label, resolve_reference
 
 RUN_FORMAT = 1
+#: Most sparse rays scored per candidate view (images have at most 4096x4096
+#: pixels; a planner scores a sample of them).
+MAX_CANDIDATE_RAYS = 65536
 
 
 @dataclass
@@ -109,8 +112,8 @@ class RunConfig:
             value = getattr(self, name)
             if not is_number(value) and not (name == "fov" and value is None):
                 raise UserError(f"{name} must be a number, got {value!r}")
-        if not isinstance(self.eval_views, (list, tuple)) or not all(is_whole(v) for v in self.eval_views):
-            raise UserError(f"eval_views must be a list of view counts, got {self.eval_views!r}")
+        if not isinstance(self.eval_views, (list, tuple)) or not all(is_whole(v) and v > 0 for v in self.eval_views):
+            raise UserError(f"eval_views must be a list of positive view counts, got {self.eval_views!r}")
         for name in ("planner_options", "field"):
             if not isinstance(getattr(self, name), dict):
                 raise UserError(f"{name} must be a table of options, got {getattr(self, name)!r}")
@@ -119,26 +122,34 @@ class RunConfig:
 
     def validate(self, n_candidates: int | None = None) -> None:
         """UserError unless the settings make a run (types, ranges, the budget against ``n_candidates``)."""
+        from .field.config import MAX_MEMBERS, MAX_STEPS
+
         self._check_types()
         checks = [
             (0 <= self.seed < 2**31, f"the seed must be in [0, 2^31), got {self.seed}"),
             (self.budget > 0, f"the view budget must be positive, got {self.budget}"),
             (0 <= self.initial_views <= self.budget,
              f"initial views ({self.initial_views}) must be between 0 and the budget ({self.budget})"),
-            (self.ensemble >= 1, f"the ensemble needs at least one member, got {self.ensemble}"),
+            (1 <= self.ensemble <= MAX_MEMBERS,
+             f"the ensemble needs between 1 and {MAX_MEMBERS} members, got {self.ensemble}"),
             (self.batch >= 1, f"the batch must be at least 1, got {self.batch}"),
             (self.resolution > 0, f"image resolution must be positive, got {self.resolution}"),
-            (self.spp > 0, f"samples per pixel must be positive, got {self.spp}"),
+            (0 < self.spp <= MAX_SPP, f"samples per pixel must be in [1, {MAX_SPP}], got {self.spp}"),
             (self.fov is None or 0 < self.fov < 180, f"field of view must be in (0, 180) degrees, got {self.fov}"),
             (self.rig in RIG_KINDS, f"unknown rig '{self.rig}'; choose one of {', '.join(RIG_KINDS)}"),
             (self.candidates >= 1, f"at least one candidate view is needed, got {self.candidates}"),
             (self.heldout >= 1, f"at least one held-out view is needed to evaluate on, got {self.heldout}"),
             (math.isfinite(self.distance_weight) and self.distance_weight >= 0,
              f"the distance weight must be a finite number >= 0, got {self.distance_weight}"),
-            (self.rays_per_candidate > 0, "rays per candidate must be positive"),
+            (0 < self.rays_per_candidate <= MAX_CANDIDATE_RAYS,
+             f"rays per candidate must be in [1, {MAX_CANDIDATE_RAYS}], got {self.rays_per_candidate}"),
             (min(self.initial_steps, self.steps_per_view) >= 0,
              f"training steps cannot be negative, got initial_steps={self.initial_steps}, "
              f"steps_per_view={self.steps_per_view}"),
+            # The longest single training: the planner's ensemble's first, on up to `budget` views.
+            (max(self.initial_steps + self.steps_per_view * self.budget, self.eval_steps) <= MAX_STEPS,
+             f"a training may take at most {MAX_STEPS:,} steps, got initial_steps + steps_per_view x budget = "
+             f"{self.initial_steps + self.steps_per_view * self.budget:,} and eval_steps = {self.eval_steps:,}"),
             (self.eval_steps > 0, f"evaluation steps must be positive, got {self.eval_steps}"),
         ]
         if n_candidates is not None:
@@ -185,6 +196,8 @@ def view_rays(views: list[View]) -> dict:
 
 def sparse_candidate_rays(candidates, n_rays: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """A fixed random subset of R pixel rays per candidate: origins and directions, (C, R, 3) each."""
+    if not is_whole(n_rays) or not 0 < n_rays <= MAX_CANDIDATE_RAYS:
+        raise UserError(f"rays per candidate must be a whole number in [1, {MAX_CANDIDATE_RAYS}], got {n_rays!r}")
     rng = np.random.default_rng(seed)
     o_all, d_all = [], []
     for cam in candidates:
@@ -269,6 +282,68 @@ def config_changes(recorded, current: dict, compare_scene: bool = True) -> dict:
     if "planner" in keys and None in (old.get("ensemble"), new.get("ensemble")) and "ensemble" in keys:
         keys.remove("ensemble")  # one of the planners trains no ensemble: the planner says it all
     return {k: (old.get(k), new.get(k)) for k in keys}
+
+
+#: The parts of a run record and their types (those before the line are in every record;
+#: the others came later, or come with a round).
+RECORD_PARTS = {"config": dict, "candidates": list, "heldout": list, "captured": list, "metrics": list,
+                "finished": bool,
+                # ---
+                "rounds": list, "versions": dict, "rng_state": dict, "planner_options": dict, "distances": bool,
+                "bbox": list, "budget_changes": list, "resumed_with": list, "ensemble_file": str}
+REQUIRED_PARTS = ("config", "candidates", "heldout", "captured", "metrics", "finished")
+
+
+def read_record(path) -> dict:
+    """The run record in ``path`` (run.json), its parts checked, so that a
+    hand-edited or damaged record is refused in one line, not deep in a
+    resume, a report or an export.
+
+    Raises:
+        UserError: "PATH is damaged (what is wrong)", or not a run record.
+    """
+    from .cameras import Camera
+
+    path = Path(path)
+    try:
+        rec = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:  # ValueError: not JSON, or not text
+        raise UserError(f"{path} is damaged ({exc})") from None
+    if not isinstance(rec, dict) or not set(REQUIRED_PARTS) <= set(rec):
+        raise UserError(f"{path} is not a run record")
+
+    def damaged(why: str) -> UserError:
+        return UserError(f"{path} is damaged ({why})")
+
+    for key, kind in RECORD_PARTS.items():
+        if key in rec and not (isinstance(rec[key], kind) or (key == "ensemble_file" and rec[key] is None)):
+            raise damaged(f"its {key} is {type(rec[key]).__name__}, not {kind.__name__}")
+    for key in ("wall_seconds", "planning_seconds"):
+        if key in rec and not (is_number(rec[key], finite=True) and rec[key] >= 0):
+            raise damaged(f"its {key} is {rec[key]!r}, not a number of seconds")
+    for key in ("candidates", "heldout"):
+        try:
+            for cam in rec[key]:
+                Camera.from_dict(cam)
+        except UserError as exc:
+            raise damaged(f"one of its {key}: {exc}") from None
+    n = len(rec["candidates"])
+    if not all(is_whole(i) and 0 <= i < n for i in rec["captured"]):
+        raise damaged(f"its captured views are not indices of its {n} candidates")
+    for m in rec["metrics"]:
+        if not (isinstance(m, dict) and is_whole(m.get("views")) and is_number(m.get("psnr"))
+                and all(m.get(k) is None or is_number(m[k]) for k in ("ssim", "distance_error", "fit_psnr"))):
+            raise damaged("an entry of its metrics is not the scores at a view count")
+    if not all(isinstance(v, str) for v in rec.get("versions", {}).values()):
+        raise damaged("its versions are not names of versions")
+    ens_file = rec.get("ensemble_file")
+    if ens_file is not None and not ENSEMBLE_FILE.fullmatch(ens_file):  # the run removes it when replaced
+        raise damaged(f"its ensemble_file {ens_file!r} is not one of the run's ensemble_NNN.npz files")
+    bbox = rec.get("bbox")
+    if bbox is not None and not (np.shape(bbox) == (2, 3) and all(is_number(v, finite=True)
+                                                                   for corner in bbox for v in corner)):
+        raise damaged(f"its bbox is {bbox!r}, not two corners of three numbers")
+    return rec
 
 
 def other_settings(folder, changed: list[str], advice: str) -> str:
@@ -510,11 +585,9 @@ class Run:
         """Load an unfinished run from the folder; True when resuming."""
         if self.record_path.is_file():
             try:
-                rec = json.loads(self.record_path.read_text())
-            except (OSError, ValueError) as exc:  # ValueError: not JSON, or not text
-                raise UserError(f"{self.record_path} is damaged ({exc}); remove it to start over") from None
-            if not isinstance(rec, dict):
-                raise UserError(f"{self.record_path} is not a run record; remove it to start over")
+                rec = read_record(self.record_path)
+            except UserError as exc:
+                raise UserError(f"{exc}; remove it to start over") from None
             # Scenes and datasets are compared by content, not by path; a record
             # without a digest (a dataset's, from before datasets had one) by path.
             by_content = rec.get("content_hash") is not None and self._content_hash() is not None
@@ -526,16 +599,7 @@ class Run:
                     or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):
                 raise UserError(f"{self.out} holds a run of a scene or dataset that has changed since; "
                                 "choose another run folder (--out)")
-            n = len(self.source.candidates)
-            captured = rec.get("captured")
-            if not (isinstance(captured, list) and all(is_whole(i) and 0 <= i < n for i in captured)):  # hand-edited
-                raise UserError(f"{self.record_path} is damaged (its captured views are not indices of its {n} "
-                                "candidates); remove it to start over")
-            # The run replaces (removes) its ensemble file: only ever one of its own.
-            ens_file = rec.get("ensemble_file")
-            if ens_file is not None and not (isinstance(ens_file, str) and ENSEMBLE_FILE.fullmatch(ens_file)):
-                raise UserError(f"{self.record_path} is damaged (its ensemble_file {ens_file!r} is not one of the "
-                                "run's ensemble_NNN.npz files); remove it to start over")
+            captured = rec["captured"]
             if other_planner_code(rec, self.planner_digest):
                 raise UserError(f"{self.out} holds a run made with another version of the planner's code "
                                 f"({planner_label(self.cfg.planner)}); choose another run folder (--out), "
@@ -558,6 +622,11 @@ class Run:
                               + "; it goes on with " + ", ".join(f"{k} {now.get(k)}" for k in differ),
                               stacklevel=2)
                 rec.setdefault("resumed_with", []).append(now)
+            try:  # the planner's random stream goes on where it stopped
+                self.rng.bit_generator.state = rec["rng_state"]
+            except (KeyError, TypeError, ValueError, OverflowError):
+                raise UserError(f"{self.record_path} is damaged (its rng_state is not the state of the "
+                                f"planner's random stream); remove it to start over") from None
             self.record = rec
             return True
         return self._start()
@@ -625,17 +694,25 @@ class Run:
 
     # -- the loop -----------------------------------------------------------
     def execute(self) -> dict:
+        """Run, resume or extend the run in the folder; returns its record.
+
+        Raises:
+            FolderInUse: another run is writing the folder now (nothing is touched).
+        """
+        self.out.mkdir(parents=True, exist_ok=True)
+        with folder_lock(self.out):
+            return self._execute()
+
+    def _execute(self) -> dict:
         from tqdm import tqdm
 
         self._clock = time.perf_counter()  # wall time accumulates across resumes
-        self.out.mkdir(parents=True, exist_ok=True)
         resumed = self._load_or_start()
         cfg = self.cfg
         if self.record["finished"]:
             self.log(f"{self.out} is already complete")
             return self.record
         if resumed:
-            self.rng.bit_generator.state = self.record["rng_state"]
             self.env.reset(seed=cfg.seed, options={"initial_views": 0})
             self.env.restore(self.record["captured"])
             # Written again from the restored views: one damaged or deleted by

@@ -35,6 +35,10 @@ TEXTURE_NAMES = ("{stem}_texture.png", "{stem}_texture.jpg", "{stem}.png", "{ste
 
 #: Half width of the authored floor, in units of the normalised object (which spans 1).
 FLOOR_HALF_WIDTH = 0.8
+#: Most point lights on the ring (as ``scene --point-lights`` allows), and the
+#: deepest path tracer (Mitsuba reads the depth as a 32-bit integer).
+MAX_POINT_LIGHTS = 16
+MAX_DEPTH = 1024
 
 
 @dataclass
@@ -80,10 +84,10 @@ class SceneOptions:
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise UserError(f"{name} must be true or false, got {getattr(self, name)!r}")
             setattr(self, name, bool(getattr(self, name)))
-        for name, least in (("point_lights", 0), ("max_depth", 1)):
+        for name, least, most in (("point_lights", 0, MAX_POINT_LIGHTS), ("max_depth", 1, MAX_DEPTH)):
             value = getattr(self, name)
-            if not is_whole(value) or value < least:
-                raise UserError(f"{name} must be a whole number >= {least}, got {value!r}")
+            if not is_whole(value) or not least <= value <= most:
+                raise UserError(f"{name} must be a whole number in [{least}, {most}], got {value!r}")
 
 
 def load_mesh(path) -> "trimesh.Trimesh":

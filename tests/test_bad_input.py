@@ -267,6 +267,12 @@ def test_benchmark_scripts_refuse_bad_field_options(script, args, message):
     (dict(init_scale=-1.0), "init_scale must be >= 0"),
     (dict(n_levels=2.5), "n_levels must be a whole number"),
     (dict(batch_rays=10**400), "batch_rays must be a finite number"),
+    # Values that would only exhaust memory or overflow the grid's coordinates.
+    (dict(n_samples=10**8), "batch_rays x n_samples = 409600000000 samples per batch, more than 16777216"),
+    (dict(render_batch=10**6), "render_batch x n_samples"),
+    (dict(n_levels=100), "n_levels must be at most 16"),
+    (dict(per_level_scale=1e300), "the finest level would have more than 65536 cells per axis"),
+    (dict(bbox_padding=1e30), "bbox_padding must be at most 1"),
 ])
 def test_field_options_out_of_range(options, message):
     from mitsuba_active.field import FieldConfig
@@ -282,6 +288,13 @@ def test_field_options_out_of_range(options, message):
     (dict(fov="wide"), "fov must be a number"),
     (dict(seed=-1), "the seed must be in"),
     (dict(field=3), "field must be a table"),
+    (dict(eval_views=[0, 5]), "eval_views must be a list of positive view counts"),
+    # Far beyond any use: refused before anything runs, not a traceback or an endless run.
+    (dict(eval_steps=10**20), "a training may take at most 10,000,000 steps"),
+    (dict(steps_per_view=10**6), r"initial_steps \+ steps_per_view x budget = 20,000,200"),
+    (dict(rays_per_candidate=10**20), r"rays per candidate must be in \[1, 65536\]"),
+    (dict(ensemble=1000), "the ensemble needs between 1 and 64 members"),
+    (dict(spp=10**11), r"samples per pixel must be in \[1, 65536\]"),
 ])
 def test_run_settings_of_the_wrong_type(settings, message):
     from mitsuba_active.run import RunConfig
@@ -294,6 +307,7 @@ def test_run_settings_of_the_wrong_type(settings, message):
     (dict(color="red"), "color must be three numbers"),
     (dict(color=[1.5, 0, 0]), "color must be three numbers"),
     (dict(point_lights=2.5), "point_lights must be a whole number"),
+    (dict(point_lights=99), r"point_lights must be a whole number in \[0, 16\], got 99"),
     (dict(sun="yes"), "sun must be true or false"),
     (dict(up="x"), "the up axis must be"),
     (dict(texture=True), "texture must be an image path"),
@@ -311,6 +325,13 @@ def test_scene_options_of_the_wrong_type(options, message, tmp_path, shared_data
     suite.write_text("[[scenes]]\nname = 'a'\nmesh = 'x.obj'\n" + "".join(f"{k} = {v}\n" for k, v in toml.items()))
     with pytest.raises(UserError, match=f"scene 'a': {message}"):
         load_suite(suite)
+
+
+def test_a_path_depth_mitsuba_cannot_read_is_refused():
+    from mitsuba_active.scene import SceneOptions
+
+    with pytest.raises(UserError, match=r"max_depth must be a whole number in \[1, 1024\], got 1099511627776"):
+        SceneOptions(max_depth=2**40)
 
 
 def test_a_mesh_inside_the_run_folder_is_kept(tmp_path):
@@ -392,7 +413,7 @@ def test_bench_set_errors_are_one_line(tmp_path):
     from tests.conftest import REPO
 
     suite = REPO / "benchmarks" / "suites" / "shared.toml"
-    for item, needle in (("ensemble=0", "at least one member"), ("field.lr=-1", "lr must be > 0"),
+    for item, needle in (("ensemble=0", "between 1 and 64 members"), ("field.lr=-1", "lr must be > 0"),
                          ("seed=3", "--seeds"), ("ensemble=1", "at least 2 members"),
                          ("eval_views=4", "eval_views must be a list")):
         code, text = run_cli("bench", suite, "--scenes", "spot", "--out", tmp_path / "b", "--set", item)
@@ -577,6 +598,113 @@ def test_bench_refuses_lists_that_name_nothing(tmp_path):
             code, text = run_cli("bench", suite, option, value, "--out", tmp_path / "b")
             assert_one_line_error(code, text, f"{option} names none")
     assert not (tmp_path / "b").exists()
+
+
+def test_bench_workers_beyond_the_machine_are_refused(tmp_path):
+    from tests.conftest import REPO
+
+    cores = os.cpu_count() or 1
+    for workers in (0, 4 * cores + 1):
+        code, text = run_cli("bench", REPO / "benchmarks" / "suites" / "shared.toml", "--workers", workers,
+                             "--out", tmp_path / "b")
+        assert_one_line_error(code, text, f"--workers must be between 1 and {4 * cores}")
+    assert not (tmp_path / "b").exists()
+
+
+TINY_PLAN = ["--resolution", "8", "--spp", "1", "--candidates", "4", "--heldout", "1", "--budget", "2",
+             "--initial-views", "2", "--eval-views", "2", "--eval-steps", "2", "--planner", "even", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def finished_run(spot_xml, tmp_path_factory):
+    out = tmp_path_factory.mktemp("finished") / "run"
+    code, text = run_cli("plan", spot_xml, "--out", out, *TINY_PLAN)
+    assert code == 0, text
+    return out
+
+
+@pytest.mark.parametrize("edit, needle", [
+    (dict(metrics=5), "its metrics is int, not list"),
+    (dict(metrics=[{"views": 2, "psnr": "high"}]), "an entry of its metrics is not the scores at a view count"),
+    (dict(versions={"mitsuba": [3]}), "its versions are not names of versions"),
+    (dict(wall_seconds="long"), "its wall_seconds is 'long', not a number of seconds"),
+    (dict(bbox=[[0, 0], [1, 1]]), "its bbox is [[0, 0], [1, 1]], not two corners of three numbers"),
+    (dict(finished="yes"), "its finished is str, not bool"),
+])
+def test_a_hand_edited_run_record_is_refused_by_every_command(finished_run, spot_xml, tmp_path, edit, needle):
+    import json
+    import shutil
+
+    from mitsuba_active.bench import Job, _recorded
+
+    out = tmp_path / "run"
+    shutil.copytree(finished_run, out)
+    rec = json.loads((out / "run.json").read_text())
+    (out / "run.json").write_text(json.dumps({**rec, **edit}))
+    code, text = run_cli("plan", spot_xml, "--out", out, *TINY_PLAN)
+    assert_one_line_error(code, text, f"run.json is damaged ({needle}); remove it to start over")
+    code, text = run_cli("export", out)
+    assert_one_line_error(code, text, f"run.json is damaged ({needle})")
+    assert not (out / "export").exists()
+    # A suite neither skips nor reports it: its run refuses the folder.
+    assert _recorded(Job("s", "even", 0, str(spot_xml), rec["config"], str(out))) is None
+
+
+def test_a_run_record_with_a_broken_random_state_or_pose(finished_run, spot_xml, tmp_path):
+    import json
+    import shutil
+
+    out = tmp_path / "run"
+    shutil.copytree(finished_run, out)
+    rec = json.loads((out / "run.json").read_text())
+    (out / "run.json").write_text(json.dumps({**rec, "rng_state": {"bit_generator": "PCG64"}}))
+    code, text = run_cli("plan", spot_xml, "--out", out, *TINY_PLAN)
+    assert_one_line_error(code, text, "its rng_state is not the state of the planner's random stream")
+    for pose, needle in (([[1.0]], "to_world must be a 4x4 matrix of numbers"),
+                         ([[float("nan")] * 4] * 4, "to_world must be finite")):
+        cams = [{**rec["candidates"][0], "to_world": pose}] + rec["candidates"][1:]
+        (out / "run.json").write_text(json.dumps({**rec, "candidates": cams}))
+        code, text = run_cli("export", out)
+        assert_one_line_error(code, text, f"run.json is damaged (one of its candidates: a camera's {needle}")
+
+
+def test_export_refuses_damaged_view_files(finished_run, tmp_path):
+    import shutil
+
+    for name, damage in (("view_001.png", lambda p: p.write_bytes(p.read_bytes()[:60])),
+                         ("view_000.exr", lambda p: p.write_bytes(b"")),
+                         ("view_000.png", lambda p: shutil.copy(tmp_path / "run" / "views" / "view_000.exr", p))):
+        shutil.rmtree(tmp_path / "run", ignore_errors=True)
+        shutil.copytree(finished_run, tmp_path / "run")
+        damage(tmp_path / "run" / "views" / name)
+        code, text = run_cli("export", tmp_path / "run")
+        assert_one_line_error(code, text, f"views/{name} is damaged (it does not read as an image")
+        assert not (tmp_path / "run" / "export").exists()
+
+
+def test_a_run_folder_in_use_is_refused_and_left_alone(finished_run, spot_xml, tmp_path):
+    import fcntl
+    import shutil
+
+    out = tmp_path / "run"
+    shutil.copytree(finished_run, out)
+    (out / "run.json").unlink()  # nothing to resume: a failed plan would otherwise clear the folder
+    before = sorted(p.name for p in out.iterdir())
+    fd = os.open(out, os.O_RDONLY)  # as a run in another process holds it
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        code, text = run_cli("plan", spot_xml, "--out", out, *TINY_PLAN)
+        assert_one_line_error(code, text, f"{out} is in use by another run")
+        assert sorted(p.name for p in out.iterdir()) == before
+    finally:
+        os.close(fd)
+    code, text = run_cli("plan", spot_xml, "--out", out, *TINY_PLAN)
+    assert code == 0, text
+
+
+def test_an_error_naming_text_with_a_line_break_stays_one_line(tmp_path):
+    code, text = run_cli("plan", tmp_path / "two\nlines.xml", "--out", tmp_path / "o")
+    assert_one_line_error(code, text, "two\\nlines.xml")
 
 
 def test_image_sizes_must_be_whole_numbers_of_pixels(spot_xml):

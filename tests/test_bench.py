@@ -132,6 +132,9 @@ def test_margins_pair_the_seeds_both_planners_have_and_ties_are_no_wins():
     assert "+0.50 (1/2) | +0.50 (1/2) |" in _mean_table(means, ["even", "rfe"], "PSNR").split("| rfe | ")[1]
 
 
+#: The views of a run record made by hand (a record's parts are checked when it is read).
+NO_VIEWS = {"candidates": [], "heldout": [], "captured": []}
+
 TINY_SUITE = """
 name = "tiny"
 planners = ["even", "rfe"]
@@ -254,6 +257,18 @@ def test_worker_processes_show_mitsubas_warnings_as_plain_lines(tiny_suite, tmp_
     assert "mitsuba-active: warning: [Sphere] 'to_world' transform shouldn't contain non-uniform scaling!" in err
 
 
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_failed_run_leaves_no_folder_behind(tiny_suite, tmp_path, workers):
+    from mitsuba_active.bench import parse_overrides
+
+    # Training diverges before the run has a record to resume from (its first views are written by then).
+    out = tmp_path / "out"
+    with pytest.raises(UserError, match="diverged"):
+        run_suite(tiny_suite, out, "quick", workers=workers, planners=["rfe"], scenes=["ball"], progress=False,
+                  overrides=parse_overrides(["field.lr=1e38", "initial_steps=30"]))
+    assert not list(out.glob("runs/ball/rfe-seed*"))
+
+
 def test_suite_runs_in_worker_processes(tiny_suite, tmp_path):
     out = tmp_path / "out"
     summary = run_suite(tiny_suite, out, "quick", workers=2, planners=["even"], progress=False)
@@ -281,6 +296,7 @@ def test_suite_runs_in_worker_processes(tiny_suite, tmp_path):
     ("[[scenes]]\nxml = 5\n", "scene #1: xml must be a file's path, got 5"),
     ("[[scenes]]\nmesh = ['x']\n", "scene #1: mesh must be a file's path"),
     (b"name = '\xff'\n", "malformed suite file .*utf-8"),
+    ("planners = []\n[[scenes]]\nmesh='x.obj'\n", "the suite has no planners"),
 ])
 def test_bad_suites(tmp_path, text, message):
     bad = tmp_path / "bad.toml"
@@ -327,7 +343,7 @@ def test_finished_runs_count_only_with_the_jobs_settings(tmp_path, shared_data):
     rec_path = tmp_path / "out" / "runs" / "simple" / "even-seed0" / "run.json"
     rec_path.parent.mkdir(parents=True)
     assert job.content_hash
-    rec = {"finished": True, "config": job.config, "content_hash": job.content_hash, "metrics": []}
+    rec = {"finished": True, "config": job.config, "content_hash": job.content_hash, "metrics": [], **NO_VIEWS}
     rec_path.write_text(json.dumps(rec))
     assert finished_record(job) is not None and collect([job]) == {"simple": {"even": [rec]}}
     # The same folder after the suite's settings changed: neither skipped nor reported.
@@ -356,11 +372,11 @@ def test_finished_runs_match_with_a_relative_or_absolute_folder(tmp_path, shared
     assert rel.config["scene"] != absolute.config["scene"]  # the mesh scene's XML lives in the folder
     rec_path = tmp_path / "out" / "runs" / "ball" / "even-seed0" / "run.json"
     rec_path.parent.mkdir(parents=True)
-    rec_path.write_text(json.dumps({"finished": True, "config": rel.config, "metrics": []}))
+    rec_path.write_text(json.dumps({"finished": True, "config": rel.config, "metrics": [], **NO_VIEWS}))
     assert finished_record(absolute) is not None
     # Another scene file is another setting.
     other = {**rel.config, "scene": "elsewhere/ball.xml"}
-    rec_path.write_text(json.dumps({"finished": True, "config": other, "metrics": []}))
+    rec_path.write_text(json.dumps({"finished": True, "config": other, "metrics": [], **NO_VIEWS}))
     assert finished_record(absolute) is None
 
 
@@ -413,7 +429,11 @@ def test_set_overrides_win_over_the_suite_and_bad_ones_write_nothing(tmp_path, s
     assert (tmp_path / "out" / "scenes" / "ball" / "ball.xml").is_file()
     for bad, message in ((["field.lr=-1"], "lr must be > 0"), (["field.bogus=1"], "unknown field option"),
                          (["field.distance_weight=10"], "not as the field option field.distance_weight"),
-                         (["planner_options.lam=2"], "unknown option lam"), (["budget='x'"], "budget must be a whole number")):
+                         (["planner_options.lam=2"], "unknown option lam"),
+                         (["budget='x'"], "budget must be a whole number"),
+                         # A suite's scenes are scenes: what `plan` refuses for one, a suite refuses too.
+                         (["downscale=2"], "scene 'ball': downscale applies to datasets"),
+                         (["eval_views=[0, 4]"], "eval_views must be a list of positive view counts")):
         with pytest.raises(UserError, match=message):
             plan_jobs(suite, tmp_path / "bad", "quick", planners=["rfe"], overrides=parse_overrides(bad))
         assert not (tmp_path / "bad").exists()

@@ -293,20 +293,22 @@ def test_resume_refuses_a_changed_scene(source, tmp_path, spot_xml):
     with pytest.raises(UserError, match="changed"):
         _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])
     # A record edited by hand, naming a view the scene has no candidate for.
-    for captured in ([0, 99], [0, "1"], None):
+    not_indices = r"its captured views are not indices of its 10 candidates"
+    not_a_list = "its captured is NoneType, not list"
+    for captured, why in (([0, 99], not_indices), ([0, "1"], not_indices), (None, not_a_list)):
         (tmp_path / "r" / "run.json").write_text(json.dumps({**rec, "captured": captured}))
-        with pytest.raises(UserError, match=r"run.json is damaged \(its captured views are not indices of its 10 "
-                                            r"candidates\)"):
+        with pytest.raises(UserError, match=rf"run.json is damaged \({why}\); remove it to start over"):
             _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])
     # An ensemble file outside the run folder: the run would load it, then remove it.
     (tmp_path / "victim.npz").write_bytes(b"keep me")
-    for name in ("../victim.npz", "views", 3):
+    not_own = r"its ensemble_file .* is not one of the run's ensemble_NNN.npz files"
+    for name, why in (("../victim.npz", not_own), ("views", not_own), (3, "its ensemble_file is int, not str")):
         (tmp_path / "r" / "run.json").write_text(json.dumps({**rec, "ensemble_file": name}))
-        with pytest.raises(UserError, match=r"run.json is damaged \(its ensemble_file .* is not one of the run's "
-                                            r"ensemble_NNN.npz files\)"):
+        with pytest.raises(UserError, match=rf"run.json is damaged \({why}\)"):
             _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])
     assert (tmp_path / "victim.npz").read_bytes() == b"keep me"
     # Other candidates in the scene are not a damaged record, and are refused as such.
+    (tmp_path / "r" / "run.json").write_text(json.dumps(rec))
     fewer = tiny_source(spot_xml, n_candidates=6, n_heldout=3, resolution=16)
     with pytest.raises(UserError, match=r"other settings \(candidates: 10 -> 6\)"):
         _run(fewer, tmp_path / "r", planner="even", budget=3, eval_views=[3], candidates=6)

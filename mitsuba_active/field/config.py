@@ -7,7 +7,19 @@ Every option is a plain number so that the config round-trips through JSON
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
+
+
+#: Most grid levels, cells per axis of the finest level, and samples (rays x
+#: samples per ray) in one training or render batch of one member.
+MAX_LEVELS = 16
+MAX_RESOLUTION = 1 << 16
+MAX_BATCH_SAMPLES = 1 << 24
+#: Most members of an ensemble, and most steps of one training call (far
+#: beyond any use: each member holds its own tables and Adam moments).
+MAX_MEMBERS = 64
+MAX_STEPS = 10_000_000
 
 
 @dataclass
@@ -142,6 +154,22 @@ class FieldConfig:
                 raise UserError(f"FieldConfig.{name} must be >= 1")
         if not 1 <= self.log2_table_size <= 26:
             raise UserError("FieldConfig.log2_table_size must be in [1, 26]")
+        # Upper bounds where larger values only exhaust memory or overflow
+        # the grid's 32-bit vertex coordinates, instead of a clear message.
+        if self.n_levels > MAX_LEVELS:
+            raise UserError(f"FieldConfig.n_levels must be at most {MAX_LEVELS}, got {self.n_levels}")
+        # In logarithms: per_level_scale ** (n_levels - 1) may overflow a float.
+        log_finest = math.log(self.base_resolution) + (self.n_levels - 1) * math.log(self.per_level_scale)
+        if log_finest > math.log(MAX_RESOLUTION):
+            raise UserError(f"FieldConfig: the finest level would have more than {MAX_RESOLUTION} cells per axis "
+                            f"(base_resolution * per_level_scale ** (n_levels - 1))")
+        if self.bbox_padding > 1:
+            raise UserError(f"FieldConfig.bbox_padding must be at most 1 (a fraction of the box per side), "
+                            f"got {self.bbox_padding}")
+        for name in ("batch_rays", "render_batch"):
+            if getattr(self, name) * self.n_samples > MAX_BATCH_SAMPLES:
+                raise UserError(f"FieldConfig: {name} x n_samples = {getattr(self, name) * self.n_samples} "
+                                f"samples per batch, more than {MAX_BATCH_SAMPLES}")
         if not 0 <= int(self.occupancy_resolution) <= 256:
             raise UserError("FieldConfig.occupancy_resolution must be in [0, 256] (0: off)")
         if not self.occupancy_threshold > 0 or int(self.occupancy_interval) < 1 \

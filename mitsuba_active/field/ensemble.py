@@ -24,7 +24,7 @@ import numpy as np
 from ..checks import is_whole
 from ..errors import UserError
 from ..variant import require_variant
-from .config import FieldConfig
+from .config import MAX_MEMBERS, MAX_STEPS, FieldConfig
 from .grid import GridLayout, init_grid
 from .occupancy import DECAY, cell_opacity
 from .render import FieldParams, hash_u32, render_flat, render_members, uniform_from_u32
@@ -104,8 +104,8 @@ class Ensemble:
         if not (np.all(np.isfinite(extent)) and np.all(extent >= 0) and extent.max() > 0):
             raise UserError("Ensemble needs a finite bounding box with bbox_max >= bbox_min, "
                             "not a single point")
-        if not is_whole(n_members) or n_members < 1:
-            raise UserError(f"Ensemble needs a whole number n_members >= 1, got {n_members!r}")
+        if not is_whole(n_members) or not 1 <= n_members <= MAX_MEMBERS:
+            raise UserError(f"Ensemble needs a whole number n_members in [1, {MAX_MEMBERS}], got {n_members!r}")
         self.n_members = int(n_members)
         self.seed = int(seed)
         self.layout = GridLayout.from_config(self.config)
@@ -343,8 +343,8 @@ class Ensemble:
         Raises:
             UserError: no rays set, or the loss became NaN/inf.
         """
-        if not is_whole(steps) or steps < 0:
-            raise UserError(f"train: steps must be a whole number >= 0, got {steps!r}")
+        if not is_whole(steps) or not 0 <= steps <= MAX_STEPS:
+            raise UserError(f"train: steps must be a whole number in [0, {MAX_STEPS:,}], got {steps!r}")
         K = self.n_members
         losses = np.zeros(int(steps), np.float64)
         it = range(int(steps))

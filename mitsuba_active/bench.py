@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .checks import setting_value
+from .checks import not_a_file, setting_value
 from .errors import FolderInUse, UserError
 from .imageio_utils import folder_name, new_entries, remove_new, replaced_folder
 from .metrics import iqm, standard_error
@@ -121,7 +121,7 @@ def load_suite(path) -> Suite:
 
     path = Path(path)
     if not path.is_file():
-        raise UserError(f"suite file not found: {path}")
+        raise UserError(not_a_file(path, "suite file"))
     try:
         data = tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
@@ -180,7 +180,7 @@ def load_suite(path) -> Suite:
         except UserError as exc:
             raise UserError(f"{path}: scene '{name}': {exc}") from None
         if not (path.parent / s[kind]).is_file():  # before a suite authors or runs anything
-            raise UserError(f"{path}: scene '{name}': {kind} file not found: {path.parent / s[kind]}")
+            raise UserError(f"{path}: scene '{name}': {not_a_file(path.parent / s[kind], kind + ' file')}")
         if kind == "xml" and Path(s[kind]).suffix.lower() != ".xml":  # as `plan` tells scenes from datasets
             raise UserError(f"{path}: scene '{name}': xml = {s[kind]!r} is not a Mitsuba scene file (.xml)")
         scenes.append(SuiteScene(name, (path.parent / s[kind]).resolve(), kind, scene_options,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 import tomllib
 
 
@@ -42,3 +43,13 @@ def setting_value(text: str):
         return float(text)
     except ValueError:
         return text
+
+
+def not_a_file(path, what: str) -> str:
+    """Why ``path``, which must be a plain file (``what``: "mesh file"), is
+    not one: missing, a folder, or something else (a pipe, a device)."""
+    if not os.path.exists(path):  # a link to nothing too
+        return f"{what} not found: {path}"
+    if os.path.isdir(path):
+        return f"{what} {path} is a folder, not a file"
+    return f"{what} {path} is not a regular file (a pipe, a socket or a device)"

@@ -73,7 +73,7 @@ def _close_progress_bars() -> None:
         bar.close()
 
 
-def _one_line(message: str) -> str:
+def _escape_line_breaks(message: str) -> str:
     """``message`` on one line: line breaks (in a file's name, or quoted from a
     library's message) shown as ``\\n``, so that an error is always one line."""
     return message.replace("\r", "\\r").replace("\n", "\\n")
@@ -92,10 +92,10 @@ def _one_line_errors(fn):
                     _load_libraries()
                 return fn(*args, **kwargs)
         except UserError as exc:
-            click.echo(f"mitsuba-active: error: {_one_line(str(exc))}", err=True)
+            click.echo(f"mitsuba-active: error: {_escape_line_breaks(str(exc))}", err=True)
             sys.exit(2)
         except OSError as exc:  # an output folder that cannot be created or written, a full disk...
-            click.echo(f"mitsuba-active: error: {_one_line(_os_error_line(exc))}", err=True)
+            click.echo(f"mitsuba-active: error: {_escape_line_breaks(_os_error_line(exc))}", err=True)
             sys.exit(2)
         except KeyboardInterrupt:
             _close_progress_bars()
@@ -185,6 +185,8 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
     from .env import SceneSource
     from .imageio_utils import colorize, srgb_to_linear, write_exr, write_png
 
+    if not out.strip():  # '' would be the current folder
+        raise UserError("-o/--output names no folder; give one, e.g. -o views")
     _check_rig_options(rig)
     source = SceneSource.from_xml(scene_xml or BUNDLED_SCENE, rig, n_candidates, n_heldout, resolution, fov,
                                   spp=spp)

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .checks import is_number, is_whole
+from .checks import is_number, is_whole, not_a_file
 from .errors import UserError
 from .imageio_utils import new_entries, remove_new
 from .variant import require_variant
@@ -96,7 +96,7 @@ def load_mesh(path) -> "trimesh.Trimesh":
 
     path = Path(path)
     if not path.is_file():
-        raise UserError(f"mesh file not found: {path}")
+        raise UserError(not_a_file(path, "mesh file"))
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise UserError(f"unsupported mesh format '{path.suffix}' ({path}); use one of {', '.join(MESH_SUFFIXES)}")
     try:
@@ -446,7 +446,7 @@ def load_scene(xml_path, **params) -> Scene:
         raise UserError(f"{xml_path} is a folder, not a scene XML file (a transforms.json dataset is read "
                         "with mitsuba_active.datasets.DatasetSource)")
     if not xml_path.is_file():
-        raise UserError(f"scene file not found: {xml_path}")
+        raise UserError(not_a_file(xml_path, "scene file"))
     if xml_path.suffix.lower() in MESH_SUFFIXES:
         raise UserError(f"{xml_path} is a mesh, not a Mitsuba scene: author one around it first with "
                         f"'mitsuba-active scene {xml_path} -o scene.xml'")

@@ -464,6 +464,24 @@ def test_a_failed_plan_leaves_no_folder(tmp_path, shared_data):
     assert [p.name for p in out.iterdir()] == ["notes.txt"]
 
 
+def test_render_needs_a_folder_to_write(spot_xml, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, text = run_cli("render", spot_xml, "-o", "", "--views", "1", "--resolution", "8", "--spp", "1")
+    assert_one_line_error(code, text, "-o/--output names no folder")
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_mesh_that_is_not_a_file_is_named_as_such(tmp_path, out):
+    os.mkfifo(tmp_path / "pipe.obj")
+    (tmp_path / "link.obj").symlink_to(tmp_path / "gone.obj")
+    for mesh, needle in (("pipe.obj", "pipe.obj is not a regular file"), ("link.obj", "mesh file not found")):
+        code, text = run_cli("scene", tmp_path / mesh, "-o", out / "s.xml")
+        assert_one_line_error(code, text, needle)
+        code, text = run_cli("plan", tmp_path / mesh, "--out", out)
+        assert_one_line_error(code, text, needle)
+    _assert_nothing_written(out)
+
+
 def test_render_and_export_name_the_wrong_kind_of_input(tmp_path, shared_data, out):
     code, text = run_cli("render", shared_data / "meshes" / "cow.obj", "-o", out)
     assert_one_line_error(code, text, "mitsuba-active scene")

@@ -228,6 +228,15 @@ def test_metric_depth_becomes_distance_along_rays(tmp_path):
     assert not src.candidate_view(0).mask.any()  # no depth file: unknown
 
 
+@pytest.mark.parametrize("key", ["depth_file_path", "distance_file_path"])
+def test_an_8_bit_depth_map_names_the_key_to_remove(tmp_path, key):
+    (tmp_path / "depth").mkdir()
+    iio.imwrite(tmp_path / "depth" / "d.png", np.full((8, 8), 200, np.uint8))
+    write_dataset(tmp_path, n=3, frame_extra={0: {key: "depth/d.png"}})
+    with pytest.raises(UserError, match=f"8-bit and therefore not metric; remove the frame's {key}$"):
+        DatasetSource.from_path(tmp_path).heldout_view(0)
+
+
 def test_aabb_key_sets_bounds(tmp_path):
     write_dataset(tmp_path, n=4, extra={"aabb": [[-1, -2, -3], [1, 2, 3]]})
     src = DatasetSource.from_path(tmp_path)

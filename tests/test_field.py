@@ -242,7 +242,12 @@ def test_divergence_raises_user_error():
     a = views([[0.0, 0.3, 2.2]], width=16, height=16)
     ens = Ensemble(*BOX, n_members=1, config=tiny_config(lr=1e38), seed=0)
     ens.set_rays(*a)
-    with pytest.raises(UserError, match="diverged"):
+    with pytest.raises(UserError, match="diverged at step .*; lower FieldConfig.lr and start"):
+        ens.train(30)
+    # A loss weight so large that it diverges is named beside the learning rate.
+    ens = Ensemble(*BOX, n_members=1, config=tiny_config(distance_weight=1e30), seed=0)
+    ens.set_rays(*a)
+    with pytest.raises(UserError, match=r"lower FieldConfig.lr or the loss weights \(distance_weight = 1e\+30\)"):
         ens.train(30)
 
 

@@ -194,6 +194,8 @@ def test_a_planner_of_ones_own_by_reference(tmp_path, monkeypatch):
     (PLANNER_FILE, "no_such_module_here:Last", "no module named 'no_such_module_here' for a planner"),
     (PLANNER_FILE, "../run.sh:Last", "'../run.sh' is neither a planner file \\(FILE.py:CLASS\\) nor a module"),
     ("raise ValueError('first\\nsecond')\n", "mine.py:Last", "ValueError: first second \\(line 1\\)"),
+    # A script's habit, which would otherwise end the command silently with exit code 0.
+    ("import sys\nsys.exit(0)\n", "mine.py:Last", "mine.py: SystemExit: 0 \\(line 2\\)"),
     ("import helper_with_a_typo\n", "mine.py:Last", "ModuleNotFoundError: .*helper_with_a_typo.* \\(line 1\\)"),
     ("import broken_helper\n", "mine.py:Last",
      "mine.py: SyntaxError: '\\(' was never closed \\(broken_helper.py, line 3\\) \\(line 1\\)"),

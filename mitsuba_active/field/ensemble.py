@@ -366,7 +366,11 @@ class Ensemble:
             if not np.all(np.isfinite(both)):
                 if bar is not None:
                     bar.close()
-                raise UserError(f"training diverged at step {self._step} (loss {value}); lower FieldConfig.lr "
+                # Large loss weights diverge as a large learning rate does: name those set.
+                weights = [f"{n} = {getattr(self.config, n):g}" for n in ("distance_weight", "empty_weight")
+                           if getattr(self.config, n) > 0]
+                lower = "FieldConfig.lr" + (f" or the loss weights ({', '.join(weights)})" if weights else "")
+                raise UserError(f"training diverged at step {self._step} (loss {value}); lower {lower} "
                                 "and start from a new ensemble (this one's parameters are no longer finite)")
             if bar is not None and (j % 10 == 0):
                 bar.set_postfix(mse=f"{value:.4g}")

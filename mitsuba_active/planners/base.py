@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..checks import is_whole
+from ..checks import is_whole, not_a_file
 from ..errors import UserError
 from ..imageio_utils import folder_name
 
@@ -233,7 +233,7 @@ def _one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def _failure(where: str, exc: Exception, path: str | None = None) -> UserError:
+def _failure(where: str, exc: BaseException, path: str | None = None) -> UserError:
     """One line for an exception raised while loading a planner's code, with
     the line of the planner's file where it was raised."""
     if isinstance(exc, SyntaxError) and exc.filename == path:  # its str() names the file and line already
@@ -251,7 +251,7 @@ def _load_file(path: str):
     script, the file's folder is on ``sys.path``, so modules beside it import."""
     file = Path(path)
     if not file.is_file():
-        raise UserError(f"planner file not found: {file}")
+        raise UserError(not_a_file(file, "planner file"))
     digest = hashlib.sha256(file.read_bytes()).hexdigest()
     if path in _LOADED and _LOADED[path][1] == digest:
         return _LOADED[path][0]
@@ -263,7 +263,9 @@ def _load_file(path: str):
     sys.modules[name] = module  # dataclasses and pickling look classes up there
     try:
         spec.loader.exec_module(module)
-    except Exception as exc:  # the planner's own code: a bug there is named with its line
+    # The planner's own code: a bug there is named with its line. A file that
+    # calls sys.exit() (a script's habit) would otherwise end the command silently.
+    except (Exception, SystemExit) as exc:
         sys.modules.pop(name, None)
         raise _failure(f"file {file}", exc, path) from None
     _LOADED[path] = (module, digest)
@@ -283,7 +285,7 @@ def _load_module(name: str):
             raise UserError(f"no module named '{name}' for a planner (a planner in a file is named "
                             f"FILE.py:CLASS)") from None
         raise _failure(f"module {name}", exc) from None
-    except Exception as exc:
+    except (Exception, SystemExit) as exc:
         raise _failure(f"module {name}", exc) from None
     path = getattr(module, "__file__", None)
     _LOADED[name] = (module, hashlib.sha256(Path(path).read_bytes()).hexdigest() if path else None)

@@ -17,8 +17,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..checks import is_number, is_whole
 from ..errors import UserError
 from .base import Planner, PlanningState, check_batch, greedy_top, register, unseen
+
+
+#: Most Hutchinson probes per scoring (each costs a backward pass over every candidate's rays).
+MAX_PROBES = 64
 
 
 def fisher_scores(h_candidates: np.ndarray, h_train: np.ndarray, lam: float) -> np.ndarray:
@@ -61,11 +66,8 @@ class FisherPlanner(Planner):
 
     def __init__(self, lam: float = 0.1, probes: int = 2):
         # A float probes would be truncated: whole numbers only (and bool, an int too, is neither).
-        def plain(x, kinds):
-            return isinstance(x, kinds) and not isinstance(x, bool)
-
-        if not (plain(lam, (int, float)) and lam > 0 and plain(probes, int) and probes >= 1):
-            raise UserError(f"fisher needs a number lam > 0 and a whole number probes >= 1, "
+        if not (is_number(lam, finite=True) and lam > 0 and is_whole(probes) and 1 <= probes <= MAX_PROBES):
+            raise UserError(f"fisher needs a finite number lam > 0 and a whole number probes in [1, {MAX_PROBES}], "
                             f"got lam={lam!r}, probes={probes!r}")
         self.lam, self.probes = float(lam), int(probes)
 

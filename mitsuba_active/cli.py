@@ -46,7 +46,10 @@ def _os_error_line(exc: OSError) -> str:
         blocker = next((p for p in [path, *path.parents] if p.is_file()), None)
         if blocker is not None:
             return f"{blocker} is a file, where a folder is needed"
-    where = f"{exc.filename}: " if exc.filename else ""
+    # A failed rename (every output is written to a hidden temporary name, then
+    # renamed) names the output it was to become, not the temporary file.
+    name = exc.filename2 or exc.filename
+    where = f"{name}: " if name else ""
     return f"{where}{exc.strerror or exc}"
 
 

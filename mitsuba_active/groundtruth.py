@@ -22,6 +22,7 @@ from .cameras import Camera, sensor_rays_dr
 from .checks import is_whole
 from .errors import UserError
 from .imageio_utils import linear_to_srgb, read_exr, write_exr
+from .interrupts import waiting_for
 from .variant import require_variant
 
 CACHE_VERSION = "1"
@@ -82,7 +83,7 @@ def render_rgb(mi_scene, camera: Camera, spp: int, seed: int = 0) -> np.ndarray:
     total = np.zeros((camera.height, camera.width, 3))
     for n, start in enumerate(range(0, spp, per_pass)):
         k = min(per_pass, spp - start)
-        img = mi.render(mi_scene, sensor=camera.sensor(k), integrator=integrator, spp=k, seed=seed + n)
+        img = waiting_for(mi.render, mi_scene, sensor=camera.sensor(k), integrator=integrator, spp=k, seed=seed + n)
         total += k * np.array(img, dtype=np.float64)[..., :3]
     return (total / spp).astype(np.float32)
 

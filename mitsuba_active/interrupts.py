@@ -6,7 +6,9 @@ unrelated error or aborts; some libraries' imports catch ``BaseException``
 and swallow it. :func:`interrupts_deferred` lets the import finish and
 raises the ``KeyboardInterrupt`` after it; :func:`interruptible_imports`
 does so for a module's imports, and a ``KeyboardInterrupt`` that then ends
-the program does so with one line, not a traceback.
+the program does so with one line, not a traceback. :func:`waiting_for`
+keeps the main thread out of work that Mitsuba's own SIGINT handler could
+interrupt unsafely.
 """
 
 from __future__ import annotations
@@ -56,3 +58,38 @@ def interruptible_imports():
     except KeyboardInterrupt:
         sys.excepthook = _one_line_interrupt
         raise
+
+
+def waiting_for(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)``, run in a helper thread while the calling main thread waits for it.
+
+    Mitsuba's render installs a SIGINT handler of its own, which logs (and so
+    allocates memory) inside the signal handler. A Ctrl-C reaches the main
+    thread; had it been inside an allocation of its own (compiling a kernel),
+    the process would deadlock. Waiting here, it holds no allocator lock. The
+    handler cancels the render and hands the signal on: the
+    ``KeyboardInterrupt`` is raised here once the helper has finished.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return fn(*args, **kwargs)
+    outcome, ended = {}, threading.Event()
+
+    def run():
+        try:
+            outcome["value"] = fn(*args, **kwargs)
+        except BaseException as exc:  # handed to the caller below
+            outcome["error"] = exc
+        finally:
+            ended.set()
+
+    # An Event, not Thread.join(): a join interrupted by Ctrl-C marks the thread as ended though it runs on.
+    threading.Thread(target=run, name="mitsuba-active-render", daemon=True).start()
+    try:
+        ended.wait()
+    except KeyboardInterrupt:
+        with interrupts_deferred():  # the render ends (cancelled) before the interrupt goes on
+            ended.wait()
+        raise
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome["value"]

@@ -464,6 +464,16 @@ def test_a_failed_plan_leaves_no_folder(tmp_path, shared_data):
     assert [p.name for p in out.iterdir()] == ["notes.txt"]
 
 
+def test_an_output_that_cannot_be_written_is_named_not_its_temporary_file(spot_xml, tmp_path):
+    (tmp_path / "r" / "run.json").mkdir(parents=True)
+    code, text = run_cli("plan", spot_xml, "--out", tmp_path / "r", *TINY_PLAN)
+    assert_one_line_error(code, text, f"{tmp_path / 'r' / 'run.json'}: Is a directory")
+    (tmp_path / "v" / "cameras.json").mkdir(parents=True)
+    code, text = run_cli("render", spot_xml, "-o", tmp_path / "v", "--views", "1", "--resolution", "8", "--spp", "1")
+    assert_one_line_error(code, text, f"{tmp_path / 'v' / 'cameras.json'}: Is a directory")
+    assert [p.name for p in (tmp_path / "v").iterdir()] == ["cameras.json"]
+
+
 def test_render_needs_a_folder_to_write(spot_xml, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     code, text = run_cli("render", spot_xml, "-o", "", "--views", "1", "--resolution", "8", "--spp", "1")
@@ -553,6 +563,31 @@ def test_sigterm_stops_plan_like_ctrl_c(tmp_path, spot_xml):
             proc.kill()
     assert proc.returncode == 130 and err.strip().splitlines()[-1] == "mitsuba-active: interrupted", err
     assert not out.exists()
+
+
+def test_an_interrupt_while_a_render_runs_is_raised_once_the_render_has_ended():
+    """Renders run in a helper thread (Mitsuba's own SIGINT handler must not interrupt the
+    main thread inside an allocation); the main thread's Ctrl-C waits for the render."""
+    import signal
+    import threading
+    import time
+
+    from mitsuba_active.interrupts import waiting_for
+
+    ended = []
+
+    def render():
+        time.sleep(0.5)
+        ended.append(threading.current_thread() is not threading.main_thread())
+        return "image"
+
+    threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGINT)).start()
+    with pytest.raises(KeyboardInterrupt):
+        waiting_for(render)
+    assert ended == [True]
+    assert waiting_for(render) == "image"
+    with pytest.raises(ZeroDivisionError):
+        waiting_for(lambda: 1 / 0)
 
 
 def test_an_interrupt_inside_a_late_import_still_exits_130(tmp_path):

@@ -39,8 +39,8 @@ from pathlib import Path
 import numpy as np
 
 from .checks import not_a_file, setting_value
-from .errors import FolderInUse, UserError
-from .imageio_utils import folder_name, new_entries, remove_new, replaced_folder
+from .errors import UserError
+from .imageio_utils import folder_name, replaced_folder
 from .metrics import iqm, standard_error
 
 SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture")
@@ -415,7 +415,7 @@ def run_job(job: Job, threads: int | None = None) -> dict:
     import mitsuba_active  # noqa: F401
 
     from .planners.base import planner_digest
-    from .run import Run, RunConfig
+    from .run import Run, RunConfig, undone_unless_resumable
 
     if threads:
         dr.set_thread_count(threads)
@@ -427,19 +427,10 @@ def run_job(job: Job, threads: int | None = None) -> dict:
                         "are kept: undo the change to go on, or use another --out")
     t0 = time.perf_counter()
     out = Path(job.out)
-    # Only the job's own folder is new (never a parent another worker's job shares),
-    # and without run.json nothing is there to resume: a failed or stopped start
-    # leaves nothing half-made behind, as `plan` does.
+    # Only the job's own folder may be undone, never a parent another worker's job shares.
     out.parent.mkdir(parents=True, exist_ok=True)
-    new = new_entries(out)
-    try:
+    with undone_unless_resumable(out):
         Run(cfg.open_source(), cfg, out, progress=False, log=lambda m: None).execute()
-    except FolderInUse:  # what is in the folder is the other run's
-        raise
-    except BaseException:
-        if not (out / "run.json").is_file():
-            remove_new(out, *new)
-        raise
     return {"job": f"{job.scene}/{job.planner}/{job.seed}", "skipped": False,
             "seconds": round(time.perf_counter() - t0, 1)}
 

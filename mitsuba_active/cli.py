@@ -26,7 +26,7 @@ with interruptible_imports():  # click and numpy load here, after the package's 
     from click.core import ParameterSource
 
     from .console import mitsuba_log_as_warnings, show_warning
-    from .errors import FolderInUse, UserError
+    from .errors import UserError
     from .imageio_utils import folder_name, new_entries, remove_new
     from .scenes import BUNDLED_SCENE
 
@@ -311,7 +311,7 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     views and held-out renders.
     """
     from .planners import make_planner
-    from .run import RunConfig, default_out_dir
+    from .run import RunConfig, default_out_dir, undone_unless_resumable
     from .scene import MESH_SUFFIXES
 
     scene_path = str(scene_path or BUNDLED_SCENE)
@@ -346,19 +346,10 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
         click.echo(f"note: --eval-views {', '.join(map(str, dropped))} left out: below the {cfg.initial_views} "
                    f"initial views or above the budget of {cfg.budget}", err=True)
     out = Path(out) if out else default_out_dir(scene_path, planner, seed)
-    new = new_entries(out)
-    try:
+    with undone_unless_resumable(out):
         if Path(scene_path).suffix.lower() in MESH_SUFFIXES:
             scene_path = cfg.scene = _author_into_run(scene_path, out)
         record = _plan(cfg, out, quiet, given)
-    except FolderInUse:  # what is in the folder is the other run's
-        raise
-    except BaseException:
-        # Without run.json there is nothing to resume: leave nothing half-made
-        # behind (an existing folder keeps what it held).
-        if not (out / "run.json").is_file():
-            remove_new(out, *new)
-        raise
     rows = ", ".join(f"{m['views']}: {m['psnr']:.2f} dB" for m in record["metrics"])
     click.echo(f"held-out PSNR by views captured: {rows}")
     click.echo(f"results in {out}")

@@ -16,6 +16,7 @@ after every round, so an interrupted run resumes where it stopped.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
@@ -31,9 +32,10 @@ import numpy as np
 from .cameras import RIG_KINDS, camera_rays, snapped_up
 from .checks import is_number, is_whole
 from .env import ActiveViewEnv, SceneSource
-from .errors import UserError
+from .errors import FolderInUse, UserError
 from .groundtruth import MAX_SPP, View
-from .imageio_utils import atomic_write, colorize, folder_lock, srgb_to_linear, write_exr, write_png
+from .imageio_utils import (atomic_write, colorize, folder_lock, new_entries, remove_new, srgb_to_linear, write_exr,
+                            write_png)
 from .metrics import distance_error, psnr, ssim
 from .planners import PlanningState, make_planner
 from .planners.base import is_planner_file, planner_digest, planner_folder, planner_label, resolve_reference
@@ -344,6 +346,23 @@ def read_record(path) -> dict:
                                                                    for corner in bbox for v in corner)):
         raise damaged(f"its bbox is {bbox!r}, not two corners of three numbers")
     return rec
+
+
+@contextlib.contextmanager
+def undone_unless_resumable(out: Path):
+    """Run the block that starts (or resumes) the run in folder ``out``; should
+    it fail before the run has a record to resume from (run.json), undo what it
+    added: nothing half-made is left behind (a folder that was there keeps what
+    it held). A folder another run is writing (FolderInUse) is left alone."""
+    new = new_entries(out)
+    try:
+        yield
+    except FolderInUse:  # what is in the folder is the other run's
+        raise
+    except BaseException:
+        if not (out / "run.json").is_file():
+            remove_new(out, *new)
+        raise
 
 
 def other_settings(folder, changed: list[str], advice: str) -> str:

@@ -459,12 +459,12 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
     kept = sum(finished_record(job) is not None for job in jobs)
     if kept:
         log(f"{kept} of the suite's {len(jobs)} runs finished earlier with these settings: kept, not run again")
-    grown = [(job, rec) for job in jobs if (rec := _recorded(job)) and rec.get("finished")
-             and (rec.get("config") or {}).get("budget", job.config["budget"]) < job.config["budget"]]
+    grown = [(job, rec) for job in jobs if (rec := _recorded(job)) and rec["finished"]
+             and rec["config"].get("budget", job.config["budget"]) < job.config["budget"]]
     if grown:
         log(f"{len(grown)} of the suite's runs finished earlier with a smaller budget: they go on from the views "
             "they have")
-        short = sum(ends_short_of_a_batch(len(rec.get("captured") or []), job.config["initial_views"],
+        short = sum(ends_short_of_a_batch(len(rec["captured"]), job.config["initial_views"],
                                           job.config["batch"]) for job, rec in grown)
         if short:
             log(f"note: in {short} of them the last round captured fewer views than a batch, so their rounds from "
@@ -594,13 +594,13 @@ def finished_record(job: Job) -> dict | None:
     from .run import same_config
 
     rec = _recorded(job)
-    if rec is None or not rec.get("finished"):
+    if rec is None or not rec["finished"]:
         return None
     if job.content_hash is not None and rec.get("content_hash") != job.content_hash:
         return None  # the scene changed since
     if rec.get("planner_digest") != job.planner_digest:
         return None  # the planner's code changed since
-    return rec if same_config(rec.get("config"), job.config, compare_scene=job.content_hash is None) else None
+    return rec if same_config(rec["config"], job.config, compare_scene=job.content_hash is None) else None
 
 
 def collect(jobs: list[Job]) -> dict:

@@ -483,5 +483,6 @@ def bench(suite, out, profile, workers, seeds, planners, scenes, overrides, repo
                        "mitsuba-active, Mitsuba or Dr.Jit (see versions in report/results.json)", err=True)
         click.echo(f"tables and plots in {out / 'report'}")
 
+
 if __name__ == "__main__":
     main()

@@ -39,8 +39,8 @@ def export_transforms(run_dir, out_dir=None) -> Path:
     cams = [Camera.from_dict(rec["candidates"][i]) for i in rec["captured"]]
     if not cams:
         raise UserError(f"{run_dir} has no captured views to export")
-    if not rec.get("finished"):
-        budget = (rec.get("config") or {}).get("budget", "?")
+    if not rec["finished"]:
+        budget = rec["config"].get("budget", "?")
         warnings.warn(f"{run_dir} is an unfinished run: exporting the {len(cams)} of {budget} views captured so far",
                       stacklevel=2)
     missing = [n for n in range(len(cams)) if not (run_dir / "views" / f"view_{n:03d}.png").is_file()]

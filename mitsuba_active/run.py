@@ -635,7 +635,7 @@ class Run:
                 rec["finished"] = False  # a finished run only takes a larger budget
             now = self.versions
             started = rec.get("versions", now)  # records from before versions were kept: as now
-            if started != now and not rec.get("finished"):
+            if started != now and not rec["finished"]:
                 differ = [k for k in {**started, **now} if started.get(k) != now.get(k)]
                 warnings.warn(f"{self.out} was started with " + ", ".join(f"{k} {started.get(k)}" for k in differ)
                               + "; it goes on with " + ", ".join(f"{k} {now.get(k)}" for k in differ),

@@ -63,8 +63,9 @@ def main():
     planner = make_planner(args.planner)
     state = PlanningState(source.candidates, info["captured"], rng=np.random.default_rng(args.seed))
     if planner.needs_ensemble:
-        state.ensemble = Ensemble(source.bbox_min, source.bbox_max, n_members=planner.ensemble_size(2),
-                                  config=FieldConfig(**field, init_scale=PLANNER_INIT_SCALE), seed=args.seed)
+        # The field the planner scores with: an ensemble (or, for `variational`, one stochastic field).
+        state.ensemble = planner.make_field(source.bbox_min, source.bbox_max, planner.ensemble_size(2),
+                                            FieldConfig(**field, init_scale=PLANNER_INIT_SCALE), args.seed)
         # A fixed sparse set of rays per candidate: the planner scores candidates over these.
         state.candidate_rays = sparse_candidate_rays(source.candidates, 32 if tiny else 256, args.seed)
         train_on(state.ensemble, env.views, steps_per_view * len(env.views))

@@ -876,7 +876,8 @@ def _mean_table(means: dict, planners, title: str, higher_is_better: bool = True
     n = max((r["scenes"] for r in means.values()), default=0)
     baselines = [b for b in BASELINES if any(f"vs_{b}@{v}" in r for r in means.values() for v in views)]
     head = ["planner"] + [f"mean @{v}" for v in views] + [f"vs {b} @{v}" for b in baselines for v in views]
-    intro = f"Mean over {n} scenes of each cell's interquartile mean ({'higher' if higher_is_better else 'lower'} is better)"
+    better = "higher" if higher_is_better else "lower"
+    intro = f"Mean over {n} scene{'' if n == 1 else 's'} of each cell's interquartile mean ({better} is better)"
     if baselines:
         intro += ("; 'vs B': the mean difference to planner B on each scene over the seeds both have, and "
                   "in brackets the scenes where the planner does better than B, of those compared")

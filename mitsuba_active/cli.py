@@ -273,7 +273,7 @@ def _parse_counts(text: str) -> list[int]:
 @main.command()
 @click.argument("scene_path", required=False, type=click.Path())
 @click.option("--planner", default="rfe", show_default=True,
-              help="View planner: rfe, fisher, coverage, even or random; one of your own as FILE.py:CLASS "
+              help="View planner: rfe, fisher, variational, coverage, even or random; one of your own as FILE.py:CLASS "
                    "(see examples/custom_planner.py).")
 @click.option("--budget", type=int, default=20, show_default=True, help="Views captured in total.")
 @click.option("--initial-views", type=int, default=2, show_default=True, help="Random views before planning.")

@@ -440,12 +440,17 @@ def source_field_config(source, cfg: RunConfig, planner: bool = True):
     return config
 
 
-def make_ensemble(source, cfg: RunConfig, n_members: int, seed: int, planner: bool = True):
-    """The planner's ensemble (``planner=True``) or an evaluation field, configured from ``cfg``."""
+def make_ensemble(source, cfg: RunConfig, n_members: int, seed: int, planner: bool = True, make_field=None):
+    """The planner's ensemble (``planner=True``) or an evaluation field, configured from ``cfg``.
+
+    ``make_field``: the planner's :meth:`~mitsuba_active.planners.Planner.make_field`
+    (the field it scores with), else an :class:`~mitsuba_active.field.Ensemble`.
+    """
     from .field import Ensemble
 
     config = source_field_config(source, cfg, planner)
-    return Ensemble(source.bbox_min, source.bbox_max, n_members=n_members, config=config, seed=seed)
+    make_field = make_field or Ensemble
+    return make_field(source.bbox_min, source.bbox_max, n_members=n_members, config=config, seed=seed)
 
 
 def train_on(ens, views: list[View], steps: int, progress: bool = False, reset_occupancy: bool = True) -> np.ndarray:
@@ -754,12 +759,11 @@ class Run:
         if self.planner.needs_ensemble:
             state.candidate_rays = sparse_candidate_rays(self.source.candidates, cfg.rays_per_candidate,
                                                          cfg.seed + 1)
-            self.ensemble = make_ensemble(self.source, cfg, self.planner.ensemble_size(cfg.ensemble), cfg.seed)
+            self.ensemble = make_ensemble(self.source, cfg, self.planner.ensemble_size(cfg.ensemble), cfg.seed,
+                                          make_field=self.planner.make_field)
             ens_file = self.record.get("ensemble_file")
             if resumed and ens_file and (self.out / ens_file).is_file():
-                from .field import Ensemble
-
-                self.ensemble = Ensemble.load(str(self.out / ens_file))
+                self.ensemble = self.planner.load_field(str(self.out / ens_file))
                 # The rays it was trained on: its occupancy grid still holds.
                 train_on(self.ensemble, self.env.views, 0, reset_occupancy=False)
             elif self.env.views:

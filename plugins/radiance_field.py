@@ -10,7 +10,8 @@
     img = mi.render(scene)  # (H, W, 3 + 6): RGB, then the AOVs below
 
 Parameters:
-    filename: an ensemble written by ``Ensemble.save`` (``.npz``); a relative
+    filename: an ensemble written by ``Ensemble.save`` (``.npz``; a saved
+        VariationalField too, whose draws take the members' place below); a relative
         path is read from the current folder or, failing that, beside the scene XML.
     linear: bool, default True. The field stores sRGB colours in [0, 1];
         with ``linear`` the mean colour is converted to linear RGB, so that
@@ -129,11 +130,10 @@ def _make_class(base):
             return dr.fma(d, -back, o), d
 
         def sample(self, scene, sampler, ray, medium=None, active=True):
-            from mitsuba_active.field.render import render_members
-
             o, d = self._origins(ray)
             with dr.suspend_grad():
-                outs = render_members(self.ensemble.params(), o, d)
+                # One render per member (a VariationalField: per draw).
+                outs = self.ensemble.render_dr(self.ensemble.params(), o, d)
             k = len(outs)
             # Population statistics over members, as Ensemble.predict computes them.
             rgb = sum(out["rgb"] for out in outs) / k

@@ -604,6 +604,7 @@ def test_an_interrupt_inside_a_late_import_still_exits_130(tmp_path):
 @pytest.mark.parametrize("args,needle", [
     (["--planner", "even", "--ensemble", "3"], "trains no ensemble"),
     (["--planner", "fisher", "--ensemble", "3"], "trains 1 field"),
+    (["--planner", "variational", "--ensemble", "2"], "trains 1 field"),
     (["--score", "sum", "--planner-option", "form=log"], "give rfe's score once"),
     (["--planner", "even", "--score", "sum"], "applies to the rfe planner only"),
 ])

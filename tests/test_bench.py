@@ -82,6 +82,8 @@ def test_scene_means_margins_and_wins_by_hand():
     md = _mean_table(m, planners, "PSNR")
     assert "Mean over 2 scenes" in md and "| rfe | 26.75 | 30.50 | +1.75 (2/2) |" in md
     assert "seeds (a suite still running)" not in md
+    one = scene_means(summary, ["a"], planners, "psnr")
+    assert "Mean over 1 scene of each" in _mean_table(one, planners, "PSNR")
 
 
 def test_scene_means_while_a_suite_is_still_running():

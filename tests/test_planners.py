@@ -13,7 +13,7 @@ CANDS = fibonacci_sphere(12, [0, 0, 0], 2.0, 40.0, 8, 8)
 
 
 def test_registry_and_unknown_names():
-    assert set(names()) == {"random", "even", "rfe", "fisher", "coverage"}
+    assert set(names()) == {"random", "even", "rfe", "fisher", "coverage", "variational"}
     with pytest.raises(UserError, match="unknown planner"):
         make_planner("oracle")
     with pytest.raises(UserError):

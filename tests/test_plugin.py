@@ -125,3 +125,19 @@ def test_other_variants_are_told_which_the_integrator_needs():
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           env=dict(os.environ, MITSUBA_ACTIVE_VARIANT="llvm_ad_rgb"))
     assert "needs Mitsuba variant llvm_ad_rgb or cuda_ad_rgb, not llvm_ad_spectral" in proc.stdout, proc.stderr
+
+
+def test_a_variational_field_renders_its_draws(field_path, camera, tmp_path):
+    from mitsuba_active.field import VariationalField
+
+    ens = Ensemble.load(field_path)
+    field = VariationalField(ens.bbox_min, ens.bbox_max, config=ens.config, seed=2, draws=4)
+    path = tmp_path / "variational.npz"
+    field.save(path)
+    _, img = render(path, pixel_centre_sensor(camera), linear=False)
+    p = VariationalField.load(path).predict(*camera_rays(camera))
+    flat = img.reshape(-1, img.shape[-1])
+    # The spread of the draws, not of the table's two slots as if they were members.
+    assert p["rgb_var"].mean() > 1e-4
+    assert np.allclose(flat[:, :3], p["rgb_mean"], atol=1e-5)
+    assert np.allclose(flat[:, 3:6], p["rgb_var"], atol=1e-6)

@@ -91,6 +91,9 @@ class Ensemble:
         seed: base seed; member k is initialised from ``(seed, k)``.
     """
 
+    #: ``kind`` of the saved file (see :mod:`.io`).
+    KIND = "mitsuba_active.field.Ensemble"
+
     def __init__(self, bbox_min, bbox_max, n_members: int = 4,
                  config: FieldConfig | None = None, seed: int = 0):
         require_variant("Ensemble")
@@ -156,6 +159,15 @@ class Ensemble:
                            density_bias=float(self.config.density_bias),
                            n_members=self.n_members, occupancy=self._occupied,
                            occupancy_resolution=int(self.config.occupancy_resolution))
+
+    def options(self) -> dict:
+        """Options beyond :class:`FieldConfig` that a saved file keeps (none here)."""
+        return {}
+
+    @property
+    def n_outputs(self) -> int:
+        """Renders per training step whose photometric losses are summed: K."""
+        return self.n_members
 
     @property
     def n_params(self) -> int:
@@ -285,7 +297,7 @@ class Ensemble:
 
         Returns:
             (mse, loss): ``mi.Float`` scalars; ``mse`` is the photometric
-            squared error summed over members (divide by K for the mean),
+            squared error summed over members (divide by :attr:`n_outputs` for the mean),
             ``loss`` adds the distance and empty-ray terms. Call ``dr.backward(loss)`` and
             :meth:`optimizer_step` to take the step (what :meth:`train` does).
         """
@@ -298,14 +310,14 @@ class Ensemble:
         o = dr.gather(mi.Point3f, R["o"], idx)
         d = dr.gather(mi.Vector3f, R["d"], idx)
         target = dr.gather(mi.Color3f, R["rgb"], idx)
-        outs = render_members(self.params(), o, d, jitter)
+        outs, regulariser = self._training_outputs(o, d, jitter)
         # Sum of the members' mean losses: each member gets the gradient
         # it would get if trained alone.
         sq = 0.0
         for out in outs:
             sq = sq + dr.squared_norm(out["rgb"] - target)
         mse = dr.sum(sq) * (1.0 / (N * 3))
-        loss = mse
+        loss = mse + regulariser
         dw, ew = float(cfg.distance_weight), float(cfg.empty_weight)
         hit = dr.gather(mi.Bool, R["hit"], idx) if dw > 0 or ew > 0 else None
         if ew > 0:
@@ -323,6 +335,10 @@ class Ensemble:
                 dsq = dsq + dr.square(dr.select(hit, out["distance"] - dt, 0.0))
             loss = loss + dw * inv_diag2 / N * dr.sum(dsq)
         return mse, loss
+
+    def _training_outputs(self, o, d, jitter):
+        """Renders of a training batch (one per member) and a loss term added to theirs (none here)."""
+        return render_members(self.params(), o, d, jitter), 0.0
 
     def optimizer_step(self):
         """Apply one Adam update from the accumulated gradients (and refresh
@@ -345,7 +361,7 @@ class Ensemble:
         """
         if not is_whole(steps) or not 0 <= steps <= MAX_STEPS:
             raise UserError(f"train: steps must be a whole number in [0, {MAX_STEPS:,}], got {steps!r}")
-        K = self.n_members
+        K = self.n_outputs
         losses = np.zeros(int(steps), np.float64)
         it = range(int(steps))
         bar = None
@@ -397,24 +413,27 @@ class Ensemble:
         op[:n], dp[:n] = o, d
         return op, dp, n, n_pad, B
 
+    def render_dr(self, params, o, d, offset: int = 0):
+        """Render Dr.Jit rays (``mi.Point3f`` origins, ``mi.Vector3f`` unit
+        directions) with ``params`` (:meth:`params`), deterministically: a list of
+        one :func:`.render.render_flat` dict per member. ``offset``: the index of
+        the first ray among all rendered (a VariationalField's draws follow it)."""
+        return render_members(params, o, d)
+
     def _render_all(self, origins, directions):
         """Render every ray with every member; numpy (K, N, ...) outputs."""
         op, dp, n, n_pad, B = self._pad(origins, directions)
-        K = self.n_members
-        rgb = np.empty((K, n_pad, 3), np.float32)
-        dist = np.empty((K, n_pad), np.float32)
-        opac = np.empty((K, n_pad), np.float32)
+        rgb, dist, opac = [], [], []
         params = self.params()
         with dr.suspend_grad():
             for s in range(0, n_pad, B):
-                outs = render_members(params, mi.Point3f(op[s:s + B].T),
-                                      mi.Vector3f(dp[s:s + B].T))
+                outs = self.render_dr(params, mi.Point3f(op[s:s + B].T), mi.Vector3f(dp[s:s + B].T), s)
                 dr.eval(outs)
-                for k, out in enumerate(outs):
-                    rgb[k, s:s + B] = np.array(out["rgb"]).T
-                    dist[k, s:s + B] = np.array(out["distance"])
-                    opac[k, s:s + B] = np.array(out["opacity"])
-        return rgb[:, :n], dist[:, :n], opac[:, :n]
+                rgb.append([np.array(out["rgb"]).T for out in outs])
+                dist.append([np.array(out["distance"]) for out in outs])
+                opac.append([np.array(out["opacity"]) for out in outs])
+        # (batches, K, B, ...) -> (K, N, ...)
+        return tuple(np.concatenate(np.asarray(a, np.float32), axis=1)[:, :n] for a in (rgb, dist, opac))
 
     def render(self, origins, directions) -> dict:
         """Render (N,3) rays with every member.

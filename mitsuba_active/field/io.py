@@ -6,10 +6,14 @@ An uncompressed NumPy ``.npz`` archive with these arrays:
 key                    dtype / shape     meaning
 =====================  ================  ==========================================
 ``format_version``     int64 ()          1
-``kind``               str ()            ``"mitsuba_active.field.Ensemble"``
+``kind``               str ()            ``"mitsuba_active.field.Ensemble"``, or
+                                         ``"mitsuba_active.field.VariationalField"``
 ``config``             str ()            JSON of :class:`FieldConfig`
+``options``            str ()            JSON of the kind's own options (``{}`` for
+                                         an Ensemble; optional on read)
 ``bbox_min/bbox_max``  float64 (3,)      unpadded bounding box (scene units)
-``n_members``          int64 ()          K
+``n_members``          int64 ()          K (a VariationalField: 2, its mean and
+                                         scale slots)
 ``seed``               int64 ()          base seed
 ``step``               int64 ()          training steps taken so far
 ``grid``               float32 (K,E,4)   grid table: E entries per member, channels
@@ -46,7 +50,6 @@ from .config import FieldConfig
 from .grid import N_CHANNELS
 
 FORMAT_VERSION = 1
-KIND = "mitsuba_active.field.Ensemble"
 
 
 def save_ensemble(ens, path) -> Path:
@@ -55,8 +58,9 @@ def save_ensemble(ens, path) -> Path:
     K = ens.n_members
     arrays = dict(
         format_version=np.int64(FORMAT_VERSION),
-        kind=np.array(KIND),
+        kind=np.array(ens.KIND),
         config=np.array(json.dumps(ens.config.to_dict())),
+        options=np.array(json.dumps(ens.options())),
         bbox_min=ens.bbox_min.astype(np.float64),
         bbox_max=ens.bbox_max.astype(np.float64),
         n_members=np.int64(K),
@@ -85,8 +89,20 @@ def save_ensemble(ens, path) -> Path:
     return path
 
 
+def _kinds(cls) -> dict:
+    """``{KIND: class}`` of ``cls`` and its subclasses."""
+    found, todo = {}, [cls]
+    while todo:
+        c = todo.pop()
+        found[c.KIND] = c
+        todo += c.__subclasses__()
+    return found
+
+
 def load_ensemble(cls, path):
-    """Read an ensemble written by :func:`save_ensemble`."""
+    """Read an ensemble written by :func:`save_ensemble`: of class ``cls``, or
+    of a subclass of it when the file holds one (``Ensemble.load`` reads a
+    VariationalField too)."""
     path = Path(path)
     if path.is_file() and not zipfile.is_zipfile(path):  # np.load would guess at a pickle
         raise UserError(f"cannot read ensemble file {path}: not a whole .npz archive "
@@ -103,15 +119,22 @@ def load_ensemble(cls, path):
 
 
 def _ensemble_from(cls, z, path):
-    if "format_version" not in z or str(z.get("kind", "")) != KIND:
+    kind = str(z["kind"]) if "kind" in z else ""
+    if "format_version" not in z or not kind.startswith("mitsuba_active.field."):
         raise UserError(f"{path} is not a mitsuba-active field ensemble")
+    kinds = _kinds(cls)
+    if kind not in kinds:
+        raise UserError(f"{path} holds a {kind.rsplit('.', 1)[-1]}, not a {cls.__name__}")
     version = int(z["format_version"])
     if version != FORMAT_VERSION:
         raise UserError(f"{path}: unsupported field format_version {version} "
                         f"(this version reads {FORMAT_VERSION})")
     cfg = FieldConfig.from_dict(json.loads(str(z["config"])))
-    ens = cls(z["bbox_min"], z["bbox_max"], n_members=int(z["n_members"]),
-              config=cfg, seed=int(z["seed"]))
+    options = json.loads(str(z["options"])) if "options" in z else {}
+    if not isinstance(options, dict):
+        raise UserError(f"{path}: its options are not a JSON object")
+    ens = kinds[kind](z["bbox_min"], z["bbox_max"], n_members=int(z["n_members"]),
+                      config=cfg, seed=int(z["seed"]), **options)
     grid = z["grid"]
     if grid.shape != (ens.n_members, ens.layout.n_entries, N_CHANNELS):
         raise UserError(f"{path}: grid shape {grid.shape} does not match its config")

@@ -84,8 +84,14 @@ def test_save_load_gives_back_a_variational_field(tmp_path):
     again.set_rays(*train)
     assert np.isfinite(again.train(2)).all()
     Ensemble(*BOX, n_members=2, config=tiny_config(), seed=1).save(tmp_path / "e.npz")
-    with pytest.raises(UserError, match="holds a Ensemble, not a VariationalField"):
+    with pytest.raises(UserError, match="e.npz is a saved Ensemble, not a VariationalField"):
         VariationalField.load(tmp_path / "e.npz")
+    # Options edited by hand are named with the file.
+    with np.load(tmp_path / "v.npz") as z:
+        arrays = {key: z[key] for key in z.files}
+    np.savez(tmp_path / "edited.npz", **{**arrays, "options": np.array('{"draws": 1}')})
+    with pytest.raises(UserError, match=r"edited.npz: the variational field needs .* draws=1"):
+        Ensemble.load(tmp_path / "edited.npz")
 
 
 @pytest.mark.parametrize("kw", [dict(max_std=0), dict(max_std=float("inf")), dict(entropy_weight=-1),

@@ -124,7 +124,7 @@ def _ensemble_from(cls, z, path):
         raise UserError(f"{path} is not a mitsuba-active field ensemble")
     kinds = _kinds(cls)
     if kind not in kinds:
-        raise UserError(f"{path} holds a {kind.rsplit('.', 1)[-1]}, not a {cls.__name__}")
+        raise UserError(f"{path} is a saved {kind.rsplit('.', 1)[-1]}, not a {cls.__name__}")
     version = int(z["format_version"])
     if version != FORMAT_VERSION:
         raise UserError(f"{path}: unsupported field format_version {version} "
@@ -133,8 +133,11 @@ def _ensemble_from(cls, z, path):
     options = json.loads(str(z["options"])) if "options" in z else {}
     if not isinstance(options, dict):
         raise UserError(f"{path}: its options are not a JSON object")
-    ens = kinds[kind](z["bbox_min"], z["bbox_max"], n_members=int(z["n_members"]),
-                      config=cfg, seed=int(z["seed"]), **options)
+    try:
+        ens = kinds[kind](z["bbox_min"], z["bbox_max"], n_members=int(z["n_members"]),
+                          config=cfg, seed=int(z["seed"]), **options)
+    except UserError as exc:  # a hand-edited file: name it
+        raise UserError(f"{path}: {exc}") from None
     grid = z["grid"]
     if grid.shape != (ens.n_members, ens.layout.n_entries, N_CHANNELS):
         raise UserError(f"{path}: grid shape {grid.shape} does not match its config")

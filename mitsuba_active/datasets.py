@@ -220,8 +220,8 @@ def load_view(frame: Frame, white_background: bool = True) -> View:
     rgb = linear_to_srgb(area_downscale(srgb_to_linear(rgb), f))
     distance = np.zeros((cam.height, cam.width), np.float32)
     if frame.depth is not None:
-        key = "distance_file_path" if frame.depth_is_distance else "depth_file_path"
-        depth = _crop(_read_depth(frame.depth, key), frame.crop, frame.depth) * frame.depth_scale
+        entry = "distance_file_path" if frame.depth_is_distance else "depth_file_path"
+        depth = _crop(_read_depth(frame.depth, entry), frame.crop, frame.depth) * frame.depth_scale
         # Depth at the full-resolution pixel nearest each downscaled pixel centre:
         # averaging across a silhouette would invent depths that lie on no surface.
         z = depth[f // 2::f, f // 2::f][: cam.height, : cam.width]
@@ -272,8 +272,8 @@ def _read_rgb(path: Path, white_background: bool) -> np.ndarray:
     return np.clip(img, 0.0, 1.0).astype(np.float32)
 
 
-def _read_depth(path: Path, key: str) -> np.ndarray:
-    """(H, W) float32 stored depth values (unscaled); ``key``: the frame's entry naming the file."""
+def _read_depth(path: Path, entry: str) -> np.ndarray:
+    """(H, W) float32 stored depth values (unscaled); ``entry``: the frame's key naming the file."""
     if path.suffix.lower() == ".exr":
         ch = read_exr(path)
         key = next((k for k in ("Z", "Y", "R", "depth") if k in ch), next(iter(ch)))
@@ -286,7 +286,7 @@ def _read_depth(path: Path, key: str) -> np.ndarray:
     d = iio.imread(path)
     if d.dtype == np.uint8:
         # 8-bit maps (e.g. nerf-synthetic's r_N_depth_0186.png) are normalised, not metric.
-        raise UserError(f"depth map {path} is 8-bit and therefore not metric; remove the frame's {key}")
+        raise UserError(f"depth map {path} is 8-bit and therefore not metric; remove the frame's {entry}")
     return (d[..., 0] if d.ndim == 3 else d).astype(np.float32)
 
 

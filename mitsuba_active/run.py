@@ -763,7 +763,7 @@ class Run:
                                           make_field=self.planner.make_field)
             ens_file = self.record.get("ensemble_file")
             if resumed and ens_file and (self.out / ens_file).is_file():
-                self.ensemble = self.planner.load_field(str(self.out / ens_file))
+                self.ensemble = type(self.ensemble).load(str(self.out / ens_file))  # the planner's kind of field
                 # The rays it was trained on: its occupancy grid still holds.
                 train_on(self.ensemble, self.env.views, 0, reset_occupancy=False)
             elif self.env.views:

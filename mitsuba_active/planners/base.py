@@ -67,16 +67,11 @@ class Planner:
 
     def make_field(self, bbox_min, bbox_max, n_members: int, config, seed: int):
         """The field a run trains for this planner (with ``needs_ensemble``):
-        an :class:`~mitsuba_active.field.Ensemble` of ``n_members``."""
+        an :class:`~mitsuba_active.field.Ensemble` of ``n_members``. A run
+        resumes with the saved field, read by that field's class's ``load``."""
         from ..field import Ensemble
 
         return Ensemble(bbox_min, bbox_max, n_members=n_members, config=config, seed=seed)
-
-    def load_field(self, path):
-        """The field :meth:`make_field` makes, as saved in ``path`` (a run resumes with it)."""
-        from ..field import Ensemble
-
-        return Ensemble.load(path)
 
     def ensemble_size(self, requested: int) -> int:
         """Members to train for a requested ensemble size (``--ensemble``)."""

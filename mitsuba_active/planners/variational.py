@@ -42,8 +42,3 @@ class VariationalPlanner(RFEPlanner):
 
         return VariationalField(bbox_min, bbox_max, config=config, seed=seed, max_std=self.max_std,
                                 entropy_weight=self.entropy_weight, draws=self.draws)
-
-    def load_field(self, path):
-        from ..field import VariationalField
-
-        return VariationalField.load(path)

@@ -55,6 +55,9 @@ def test_the_variance_comes_from_the_learnt_spread():
     o, d = camera_rays([0.0, 0.3, 2.2], width=8, height=8)
     tiny = VariationalField(*BOX, config=tiny_config(), seed=0, max_std=1e-6)
     wide = VariationalField(*BOX, config=tiny_config(), seed=0, max_std=3.0)
+    # It starts from seeded means and a spread of max_std / 2 (scale logits 0) everywhere.
+    start = wide.grid_numpy()
+    assert np.all(start[1] == 0) and np.abs(start[0]).max() > 0
     assert tiny.predict(o, d)["rgb_var"].max() < 1e-9
     assert wide.predict(o, d)["rgb_var"].mean() > 1e-4
     # The same rays give the same prediction (fixed draws).

@@ -126,7 +126,7 @@ class Ensemble:
         self.box_max = tuple(float(v) for v in box_max)
 
         seqs = _member_seeds(self.seed, self.n_members)
-        grid0 = init_grid(self.layout, self.config, seqs)
+        grid0 = self._initial_grid(init_grid(self.layout, self.config, seqs))
         bg0 = np.stack([np.random.default_rng(s.spawn(1)[0]).uniform(-0.1, 0.1, 3)
                         for s in seqs]).astype(np.float32)
         self._make_optimizer(grid0, bg0)
@@ -136,6 +136,11 @@ class Ensemble:
         self._reset_occupancy()
 
     # ------------------------------------------------------------------ state
+    def _initial_grid(self, grid: np.ndarray) -> np.ndarray:
+        """The starting table (K, E, 4) from the members' seeded draws (a
+        subclass with other starting values changes it here)."""
+        return grid
+
     def _make_optimizer(self, grid, bg, adam_state=None):
         cfg = self.config
         self._opt = dr.opt.Adam(lr=cfg.lr, beta_1=cfg.beta_1, beta_2=cfg.beta_2,

@@ -27,6 +27,7 @@ import math
 
 import drjit as dr
 import mitsuba as mi
+import numpy as np
 
 from ..checks import is_number, is_whole
 from ..errors import UserError
@@ -102,9 +103,10 @@ class VariationalField(Ensemble):
         if self.config.occupancy_resolution > 0:
             raise UserError("a VariationalField has no empty-space skipping: set occupancy_resolution = 0")
         self.max_std, self.entropy_weight, self.draws = float(max_std), float(entropy_weight), int(draws)
-        grid = self.grid_numpy()
+
+    def _initial_grid(self, grid: np.ndarray) -> np.ndarray:
         grid[1] = 0.0  # scale logits: every point starts at std = max_std / 2
-        self._make_optimizer(grid, self._numpy("background").reshape(2, 3))
+        return grid
 
     def options(self) -> dict:
         """The options beyond :class:`FieldConfig` (stored in saved files)."""

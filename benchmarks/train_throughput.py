@@ -15,7 +15,12 @@ Usage::
 resident set size (RSS) every 100 steps; the drift is (last - first)/first
 after a 100-step warm-up.
 
-Two diagnostics explain how the step time grows with K:
+On the CPU the step is also timed with the compositing of the GPU path
+(blocked prefix sums and reductions over per-sample arrays) in place of the
+CPU's ray marching, the two kinds of steps interleaved
+(``blocked_compositing_step_ms``).
+
+Diagnostics explain how the step time grows with K:
 
 - ``phases``: forward (batch, lookups, compositing, loss), backward and Adam
   timed separately, with a synchronisation after each (so they add up to
@@ -36,6 +41,7 @@ settings that ``plan`` and ``bench`` runs use: ``--set n_levels=2 --set lr=0.01`
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -99,16 +105,38 @@ def ensembles(ks, rays, cfg, warmup):
     return ens
 
 
-def time_steps(ks, rays, cfg, steps, repeats, warmup):
-    """Per-step wall times for each K; the K's steps are interleaved
-    (K=1, K=4, K=1, ...) so that load from other processes hits all alike."""
-    ens = ensembles(ks, rays, cfg, warmup)
-    times = {k: [] for k in ks}
+@contextlib.contextmanager
+def compositing(marched: bool):
+    """Composite with the CPU's ray marching (the default there) or, if not
+    ``marched``, with the blocked reductions of the GPU path."""
+    from mitsuba_active.field import render
+
+    default = render._marching
+    if not marched:
+        render._marching = lambda s, return_weights: False
+    try:
+        yield
+    finally:
+        render._marching = default
+
+
+def time_steps(ks, rays, cfg, steps, repeats, warmup, kinds=(True,)):
+    """Per-step wall times for each K and compositing (``kinds``: marched
+    or not, see :func:`compositing`), keyed ``(k, marched)``; the steps are
+    interleaved (K=1, K=4, K=1, ...) so that load from other processes hits
+    all alike."""
+    ens = {}
+    for marched in kinds:
+        with compositing(marched):
+            for k, e in ensembles(ks, rays, cfg, warmup).items():
+                ens[k, marched] = e
+    times = {key: [] for key in ens}
     for _ in range(repeats * steps):
-        for k in ks:
-            t0 = time.perf_counter()
-            ens[k].train(1)
-            times[k].append(time.perf_counter() - t0)
+        for (k, marched), e in ens.items():
+            with compositing(marched):
+                t0 = time.perf_counter()
+                e.train(1)
+                times[k, marched].append(time.perf_counter() - t0)
     return times
 
 
@@ -219,9 +247,12 @@ def main(argv=None):
                                   "sample of every ray and member is evaluated "
                                   "(no empty-space skipping)",
                   members={})
-    all_times = time_steps(args.members, rays, cfg, args.steps, args.repeats, args.warmup)
+    # The CPU marches rays to composite them; the GPU path's blocked reductions are timed beside it.
+    cpu = dr.backend_v(mi.Float) == dr.JitBackend.LLVM
+    all_times = time_steps(args.members, rays, cfg, args.steps, args.repeats, args.warmup,
+                           kinds=(True, False) if cpu else (True,))
     for k in args.members:
-        times = all_times[k]
+        times = all_times[k, True]
         med = statistics.median(times)
         sps = k * cfg.batch_rays * cfg.n_samples / med
         result["members"][str(k)] = dict(step_ms_median=med * 1e3,
@@ -235,6 +266,11 @@ def main(argv=None):
         ratio = result["members"]["4"]["step_ms_median"] / result["members"]["1"]["step_ms_median"]
         result["k4_over_k1_step_time"] = ratio
         print(f"K=4 / K=1 step time: {ratio:.2f}")
+    if cpu:
+        blocked = {str(k): 1e3 * statistics.median(all_times[k, False]) for k in args.members}
+        result["blocked_compositing_step_ms"] = blocked
+        print("with the blocked reductions instead: " + ", ".join(f"K={k} {ms:.1f} ms" for k, ms in blocked.items())
+              + (f" (K=4 / K=1 {blocked['4'] / blocked['1']:.2f})" if "1" in blocked and "4" in blocked else ""))
 
     phases = phase_times(args.members, rays, cfg, args.steps, args.warmup)
     lookups = lookup_times(args.members, cfg)

@@ -13,7 +13,7 @@ import mitsuba as mi
 
 from mitsuba_active.errors import UserError
 from mitsuba_active.field import Ensemble, FieldConfig
-from mitsuba_active.field.render import composite, render_flat
+from mitsuba_active.field.render import composite, composite_marched, field_at, render_flat
 
 BOX = ([-0.7] * 3, [0.7] * 3)
 
@@ -88,6 +88,78 @@ def test_composite_gradient_matches_finite_differences():
         tm[i] -= eps
         fd = (f(tp)[0][0] - f(tm)[0][0]) / (2 * eps)
         assert abs(fd - g[i]) <= 2e-3 + 1e-2 * abs(fd), (i, fd, g[i])
+
+
+def _composite_inputs(R=37, S=16, seed=1):
+    """Raw features of R rays x S samples (one past the density's overflow
+    guard), sorted distances, bin lengths and validity (some rays miss)."""
+    rng = np.random.default_rng(seed)
+    raw = (2 * rng.normal(size=(4, R * S))).astype(np.float32)
+    raw[0, 5] = 20.0
+    t = np.sort(rng.uniform(0, 3, size=(R, S)), 1).ravel().astype(np.float32)
+    delta = np.repeat(rng.uniform(0.05, 0.3, R), S).astype(np.float32)
+    valid = np.repeat(rng.uniform(size=R) > 0.2, S)
+    valid[S + 3] = False  # one skipped sample inside a ray
+    return raw, t, delta, valid, rng.normal(size=(5, R)).astype(np.float32)
+
+
+def _composite_derivatives(marched: bool):
+    """Outputs (rgb, dsum, opac), gradient of a fixed linear function of them
+    with respect to the raw features, and its derivative along a fixed
+    tangent (forward mode), by one of the two compositing implementations."""
+    raw_np, t_np, delta_np, valid_np, G = _composite_inputs()
+    S, bias, diag = 16, -1.0, 1.5
+    params = type("Params", (), dict(density_bias=bias, diag=diag))
+
+    def project(raw):
+        if marched:
+            rgb, dsum, opac = composite_marched(raw, mi.Float(t_np), mi.Float(delta_np), mi.Bool(valid_np), S,
+                                                bias, 1 / diag)
+        else:
+            sigma, rgb_s = field_at(params, None, 0, mi.Bool(valid_np), raw=raw)
+            _, rgb, dsum, opac = composite(sigma * mi.Float(delta_np), rgb_s, mi.Float(t_np), S)
+        y = dr.dot(rgb, mi.Color3f(G[:3])) + dsum * mi.Float(G[3]) + opac * mi.Float(G[4])
+        return y, [np.array(dr.detach(v)) for v in (rgb, dsum, opac)]
+
+    raw = mi.Vector4f(raw_np)
+    dr.enable_grad(raw)
+    y, outputs = project(raw)
+    dr.backward(dr.sum(y))
+    grad = np.array(dr.grad(raw))
+    raw = mi.Vector4f(raw_np)
+    dr.enable_grad(raw)
+    dr.set_grad(raw, mi.Vector4f(np.random.default_rng(2).normal(size=raw_np.shape).astype(np.float32)))
+    y, _ = project(raw)
+    return outputs + [grad, np.array(dr.forward_to(y))]
+
+
+def test_marched_composite_matches_blocked_reductions():
+    """The ray-marching compositing (a CustomOp with closed-form derivatives)
+    gives the outputs and both derivatives of field_at + composite."""
+    blocked = _composite_derivatives(marched=False)
+    marched = _composite_derivatives(marched=True)
+    for name, a, b in zip(("rgb", "dsum", "opacity", "gradient", "forward derivative"), marched, blocked):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5, err_msg=name)
+    grad = marched[3]
+    assert np.abs(grad).max() > 1e-2
+    assert grad[0, 5] == 0 and grad[0, 16 + 3] == 0  # past the overflow guard; a skipped sample
+
+
+def test_render_with_weights_matches_marched_render():
+    """Asking for the weights takes the blocked reductions; the colours,
+    distances and opacities are the marched render's, and the weights sum to
+    the opacity."""
+    ens = Ensemble(*BOX, n_members=2, config=tiny_config(), seed=0)
+    o, d = camera_rays([0.3, 0.4, 2.5], width=8, height=8)
+    params = ens.params()
+    plain = render_flat(params, mi.Point3f(o.T), mi.Vector3f(d.T), 1)
+    weighted = render_flat(params, mi.Point3f(o.T), mi.Vector3f(d.T), 1, return_weights=True)
+    assert "weights" not in plain
+    for key in ("rgb", "distance", "opacity"):
+        np.testing.assert_allclose(np.array(plain[key]), np.array(weighted[key]), rtol=1e-5, atol=1e-6)
+    w = np.array(weighted["weights"]).reshape(len(o), -1)
+    np.testing.assert_allclose(w.sum(1), np.array(weighted["opacity"]), rtol=1e-5, atol=1e-6)
+    assert np.array(plain["opacity"]).max() > 0.1
 
 
 def test_render_gradient_wrt_grid_matches_finite_differences():

@@ -7,7 +7,8 @@ Public API::
     from mitsuba_active.field import FieldConfig, Ensemble, VariationalField
 
 Lower level (Dr.Jit arrays, no numpy): :mod:`mitsuba_active.field.render`
-(``render_rays_dr``, ``render_flat``, ``composite``, ``sample_along_rays``).
+(``render_rays_dr``, ``render_flat``, ``composite``, ``composite_marched``,
+``sample_along_rays``).
 See docs/field.md.
 """
 

@@ -1,9 +1,11 @@
 """Volume rendering of flat ray batches with Dr.Jit arrays (no numpy).
 
 Rays are flat Dr.Jit arrays of length R; every ray owns a contiguous block of
-S = ``n_samples`` samples, so the sample arrays have length R*S and per-ray
-reductions are blocked reductions (``dr.block_prefix_sum`` for
-transmittance, ``dr.block_sum`` for the composited outputs). Each ray carries
+S = ``n_samples`` samples, so the sample arrays have length R*S. Per-ray
+compositing either marches each ray through its block in a loop, one ray per
+lane (:func:`composite_marched`, on the CPU), or uses blocked reductions
+(:func:`composite`: ``dr.block_prefix_sum`` for transmittance,
+``dr.block_sum`` for the composited outputs). Each ray carries
 the index of the ensemble member it belongs to, which selects that member's
 slice of the shared parameter table: K members are rendered by one set of
 kernels over K*R rays instead of K Python-driven passes.
@@ -111,7 +113,8 @@ def sample_along_rays(o, d, params: FieldParams, jitter=None):
     Returns:
         dict of per-sample arrays (length R*S): ``ray`` (UInt32 ray index),
         ``t`` (distance from origin), ``delta`` (bin length), ``p``
-        (Point3f), ``u`` (Point3f box-normalised), ``valid`` (Bool).
+        (Point3f), ``u`` (Point3f box-normalised), ``valid`` (Bool), and
+        per ray (length R) ``ray_valid`` (Bool: the ray meets the box).
     """
     S = int(params.n_samples)
     R = dr.width(o)
@@ -133,7 +136,19 @@ def sample_along_rays(o, d, params: FieldParams, jitter=None):
     bmin = mi.Vector3f(params.box_min)
     inv_ext = mi.Vector3f(1.0 / np.subtract(params.box_max, params.box_min))
     u = mi.Point3f((p - bmin) * inv_ext)
-    return dict(ray=ray, t=t, delta=delta, p=p, u=u, valid=valid)
+    return dict(ray=ray, t=t, delta=delta, p=p, u=u, valid=valid, ray_valid=t_far > t_near)
+
+
+def _raw_to_field(raw, valid, density_bias: float, inv_diag: float):
+    """Density and colour of raw features, as in :func:`field_at`: (sigma,
+    rgb, live); ``live`` marks where the density's gradient flows (inside
+    the box, below the overflow guard)."""
+    logit = raw[0] + density_bias
+    # min(): exp overflow guard.
+    sigma = dr.select(valid, dr.exp(dr.minimum(logit, 15.0)) * inv_diag, 0.0)
+    rgb = mi.Color3f(dr.rcp(1.0 + dr.exp(-raw[1])), dr.rcp(1.0 + dr.exp(-raw[2])),
+                     dr.rcp(1.0 + dr.exp(-raw[3])))
+    return sigma, rgb, valid & (logit < 15.0)
 
 
 def field_at(params: FieldParams, u, member, active=True, raw=None):
@@ -144,11 +159,7 @@ def field_at(params: FieldParams, u, member, active=True, raw=None):
     """
     if raw is None:
         raw = query(params.grid, params.layout, params.n_members, u, member, active)
-    logit = dr.minimum(raw[0] + params.density_bias, 15.0)  # exp overflow guard
-    sigma = dr.exp(logit) * (1.0 / params.diag)
-    rgb = mi.Color3f(dr.rcp(1.0 + dr.exp(-raw[1])), dr.rcp(1.0 + dr.exp(-raw[2])),
-                     dr.rcp(1.0 + dr.exp(-raw[3])))
-    sigma = dr.select(active, sigma, 0.0)
+    sigma, rgb, _ = _raw_to_field(raw, mi.Bool(active), params.density_bias, 1.0 / params.diag)
     return sigma, rgb
 
 
@@ -170,6 +181,121 @@ def composite(tau, rgb_s, t, S: int):
     red = dr.block_sum(mi.Vector4f(w * rgb_s[0], w * rgb_s[1], w * rgb_s[2], w * t), S)
     opac = dr.block_sum(w, S)
     return w, mi.Color3f(red[0], red[1], red[2]), red[3], opac
+
+
+class _MarchedComposite(dr.CustomOp):
+    """:func:`composite_marched` with its derivatives (see there)."""
+
+    def eval(self, raw, t, delta, valid, S, density_bias, inv_diag):
+        self.raw, self.t, self.valid, self.S = raw, t, valid, S
+        self.density_bias, self.inv_diag = density_bias, inv_diag
+        self.first = dr.arange(mi.UInt32, dr.width(t) // S) * S  # each ray's first sample
+        self.delta = dr.gather(mi.Float, delta, self.first)
+        self.per_ray = dr.width(valid) == dr.width(self.first)
+        _, rgb, dsum, opac, _ = self._march()
+        # Evaluated here so that the derivative passes read the outputs
+        # instead of marching the rays again.
+        dr.eval(rgb, dsum, opac)
+        self.out = (rgb, dsum, opac)
+        return rgb, dsum, opac
+
+    def _sample(self, i):
+        """(sigma, colour, t, live) of sample ``i`` of every ray (lanes = rays)."""
+        j = self.first + i
+        raw = dr.gather(mi.Vector4f, self.raw, j)
+        valid = self.valid if self.per_ray else dr.gather(mi.Bool, self.valid, j)
+        sigma, c, live = _raw_to_field(raw, valid, self.density_bias, self.inv_diag)
+        return sigma, c, dr.gather(mi.Float, self.t, j), live
+
+    def _march(self, visit=None, acc=()):
+        """March every ray through its samples: returns the final (transmittance,
+        rgb, dsum, opac, acc). After :meth:`eval`, ``acc = visit(i, sigma, c,
+        t_i, live, w, trans_after, rest, acc)`` is called at each sample, where
+        ``rest`` is what the samples behind it contribute to (rgb, dsum, opac):
+        the outputs minus the running sums up to and including this sample;
+        ``acc`` is loop state (per ray)."""
+        z = dr.zeros(mi.Float, dr.width(self.delta))
+
+        def step(i, trans, p_rgb, p_dsum, p_opac, acc):
+            sigma, c, t_i, live = self._sample(i)
+            alpha_c = dr.exp(-sigma * self.delta)  # 1 - alpha
+            w = trans * (1.0 - alpha_c)
+            p_rgb, p_dsum, p_opac = dr.fma(c, w, p_rgb), dr.fma(w, t_i, p_dsum), p_opac + w
+            trans_after = trans * alpha_c
+            if visit is not None:
+                rest = (self.out[0] - p_rgb, self.out[1] - p_dsum, self.out[2] - p_opac)
+                acc = visit(i, sigma, c, t_i, live, w, trans_after, rest, acc)
+            return i + 1, trans_after, p_rgb, p_dsum, p_opac, acc
+
+        state = (mi.UInt32(0), z + 1.0, mi.Color3f(z), mi.Float(z), mi.Float(z), acc)
+        return dr.while_loop(state, lambda i, *_: i < self.S, step)[1:]
+
+    def backward(self):
+        g_rgb, g_dsum, g_opac = self.grad_out()
+        n = dr.width(self.t)
+        # The 4 gradients of a sample side by side: one packet store per lane
+        # in the loop instead of 4 scattered ones.
+        packed = dr.zeros(mi.Float, 4 * n)
+        XF = type(mi.ArrayXf())
+
+        def visit(i, sigma, c, t_i, live, w, trans_after, rest, acc):
+            # d(output)/d(tau_i) = T_{i+1} v_i - (what the samples behind i contribute),
+            # with v_i = (colour, t_i, 1); d(rgb)/d(colour_i) = w_i.
+            g_tau = (dr.dot(g_rgb, dr.fma(c, trans_after, -rest[0])) + g_dsum * dr.fma(t_i, trans_after, -rest[1])
+                     + g_opac * (trans_after - rest[2]))
+            g_c = [g_rgb[ch] * w * c[ch] * (1.0 - c[ch]) for ch in range(3)]
+            dr.scatter(packed, XF(dr.select(live, g_tau * self.delta * sigma, 0.0), *g_c), self.first + i)
+            return acc
+
+        self._march(visit)
+        g = dr.gather(XF, packed, dr.arange(mi.UInt32, n), shape=(4, n))
+        self.set_grad_in("raw", mi.Vector4f(g[0], g[1], g[2], g[3]))
+
+    def forward(self):
+        d_raw = self.grad_in("raw")
+
+        def visit(i, sigma, c, t_i, live, w, trans_after, rest, acc):
+            d = dr.gather(mi.Vector4f, d_raw, self.first + i)
+            d_tau = dr.select(live, d[0] * self.delta * sigma, 0.0)
+            d_c = mi.Color3f(*[d[ch + 1] * c[ch] * (1.0 - c[ch]) for ch in range(3)])
+            return (acc[0] + d_tau * dr.fma(c, trans_after, -rest[0]) + w * d_c,
+                    acc[1] + d_tau * dr.fma(t_i, trans_after, -rest[1]),
+                    acc[2] + d_tau * (trans_after - rest[2]))
+
+        z = dr.zeros(mi.Float, dr.width(self.delta))
+        self.set_grad_out(self._march(visit, (mi.Color3f(z), mi.Float(z), mi.Float(z)))[-1])
+
+    def name(self):
+        return "composite_marched"
+
+
+def composite_marched(raw, t, delta, valid, S: int, density_bias: float, inv_diag: float):
+    """Alpha-composite blocks of S samples from their raw features, one ray
+    per lane, without per-sample intermediates.
+
+    The same outputs as :func:`field_at` followed by :func:`composite`
+    (transmittance as a running product instead of the exponential of a
+    prefix sum: equal to rounding), as a ``drjit.CustomOp``: the forward pass
+    marches each ray through its samples in a loop, keeping transmittance and
+    the running sums in registers; the backward pass marches once more and
+    writes only the gradient of each sample's raw features, using the
+    outputs for what the samples behind it contribute (the closed form of
+    Instant-NGP's renderer). This avoids the per-sample arrays of the blocked
+    reductions and their adjoints, whose memory traffic grows with the
+    members of an ensemble.
+
+    Args:
+        raw: ``mi.Vector4f`` summed grid features per sample (R*S);
+        t, delta: per-sample distance and bin length (R*S; ``delta`` is
+            read at each ray's first sample), not differentiated;
+        valid: ``mi.Bool`` per sample (R*S), or per ray (R) where all of a
+            ray's samples share it; invalid samples (outside the box,
+            skipped) have no density.
+    Returns:
+        (rgb ``mi.Color3f``, distance sum ``sum w t``, opacity ``sum w``),
+        each of length R, as :func:`composite` returns them.
+    """
+    return dr.custom(_MarchedComposite, raw, t, delta, valid, int(S), float(density_bias), float(inv_diag))
 
 
 def lookup_samples(params: FieldParams, s: dict, member=None):
@@ -206,12 +332,28 @@ def lookup_samples(params: FieldParams, s: dict, member=None):
     return [expand(r) for r in raw] if member is None else expand(raw)
 
 
+def _marching(s: dict, return_weights: bool) -> bool:
+    """Whether to composite with :func:`composite_marched`: on the CPU, where
+    it saves the per-sample arrays' memory traffic, unless the weights are
+    wanted or the sample distances carry gradients (it differentiates the
+    raw features only). The GPU keeps the blocked reductions: a loop over
+    S samples in one lane per ray would occupy few of its threads (not
+    measured there)."""
+    return (not return_weights and dr.backend_v(mi.Float) == dr.JitBackend.LLVM
+            and not dr.grad_enabled(s["t"], s["delta"]))
+
+
 def _shade(params: FieldParams, s: dict, raw, member, return_weights=False):
     """Composite one member's evaluated raw features (see render_flat)."""
     S = int(params.n_samples)
-    sigma, rgb_s = field_at(params, s["u"], member, s["valid"], raw=raw)
-    tau = sigma * s["delta"]
-    w, rgb, dsum, opac = composite(tau, rgb_s, s["t"], S)
+    if _marching(s, return_weights):
+        # Without empty-space skipping a sample is valid where its ray is.
+        valid = s["valid"] if params.occupancy is not None else s["ray_valid"]
+        rgb, dsum, opac = composite_marched(raw, s["t"], s["delta"], valid, S, params.density_bias, 1.0 / params.diag)
+        w = None
+    else:
+        sigma, rgb_s = field_at(params, s["u"], member, s["valid"], raw=raw)
+        w, rgb, dsum, opac = composite(sigma * s["delta"], rgb_s, s["t"], S)
     bg = dr.gather(mi.Vector3f, params.background, mi.UInt32(member))
     bg = mi.Color3f(*[dr.rcp(1.0 + dr.exp(-bg[c])) for c in range(3)])
     rgb = rgb + (1.0 - opac) * bg

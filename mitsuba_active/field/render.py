@@ -234,8 +234,9 @@ class _MarchedComposite(dr.CustomOp):
         g_rgb, g_dsum, g_opac = self.grad_out()
         n = dr.width(self.t)
         # The 4 gradients of a sample side by side: one packet store per lane
-        # in the loop instead of 4 scattered ones.
-        packed = dr.zeros(mi.Float, 4 * n)
+        # in the loop instead of 4 scattered ones. The loop writes every
+        # sample, so the array needs no zeroing first.
+        packed = dr.empty(mi.Float, 4 * n)
         XF = type(mi.ArrayXf())
 
         def visit(i, sigma, c, t_i, live, w, trans_after, rest, acc):

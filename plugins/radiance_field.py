@@ -22,7 +22,8 @@ Outputs, per sample (the film averages them over a pixel's samples):
     RGB: mean colour over the ensemble members (linear or sRGB, see above);
     ``variance.R/G/B``: population variance over members of the sRGB colour;
     ``distance.Y``: mean over members of the expected distance (scene units)
-    from the sensor's optical centre, 0 where nothing is hit;
+    from the sensor's optical centre, given a hit (faint density gives its
+    depth too: weigh it by the opacity); 0 where a ray misses the field's box;
     ``distance_var.Y``: its variance over members;
     ``opacity.Y``: mean accumulated opacity in [0, 1].
 

@@ -295,6 +295,16 @@ def test_save_load_renders_identically(tmp_path):
     assert np.isfinite(ens2.train(2)).all()
 
 
+def test_load_gives_the_saved_kind_not_a_subclass_that_inherits_it(tmp_path):
+    class Logged(Ensemble):  # a user's subclass, defined before any load
+        pass
+
+    path = tmp_path / "field.npz"
+    Ensemble(*BOX, n_members=1, config=tiny_config(), seed=1).save(path)
+    assert type(Ensemble.load(path)) is Ensemble
+    assert type(Logged.load(path)) is Logged  # asked for by name, it reads the file it can hold
+
+
 def test_load_rejects_other_files(tmp_path):
     bad = tmp_path / "bad.npz"
     np.savez(bad, x=np.zeros(3))
@@ -364,6 +374,12 @@ def test_render_rays_dr_matches_numpy_render():
     np.testing.assert_allclose(np.array(rgb).T, ref["rgb"][m, idx], atol=1e-5)
     np.testing.assert_allclose(np.array(dist), ref["distance"][m, idx], rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(np.array(opac), ref["opacity"][m, idx], atol=1e-5)
+    # One origin (the pinhole's) for every ray renders the same rays.
+    rgb1, dist1, opac1 = render_rays_dr(ens, mi.Point3f(*map(float, o[0])), ray.d, member)
+    assert dr.width(rgb1) == o.shape[0]
+    np.testing.assert_array_equal(np.array(rgb1), np.array(rgb))
+    np.testing.assert_array_equal(np.array(dist1), np.array(dist))
+    np.testing.assert_array_equal(np.array(opac1), np.array(opac))
 
 
 def test_config_from_option_strings():
@@ -405,7 +421,10 @@ def test_distances_and_hits_that_would_be_misread_are_refused(distance, hit, mes
 def test_counts_and_boxes_are_checked():
     for make, message in ((lambda: Ensemble([0, 0], [1, 1]), r"bbox_min must be a point \(x, y, z\)"),
                           (lambda: Ensemble(*BOX, n_members=2.5), "whole number n_members"),
-                          (lambda: Ensemble(*BOX, n_members=0), "whole number n_members")):
+                          (lambda: Ensemble(*BOX, n_members=0), "whole number n_members"),
+                          (lambda: Ensemble(*BOX, seed=-1), r"whole number seed in \[0, 2\^63\), got -1"),
+                          (lambda: Ensemble(*BOX, seed=2**63), "whole number seed"),
+                          (lambda: Ensemble(*BOX, seed=1.5), "whole number seed")):
         with pytest.raises(UserError, match=message):
             make()
     o, d, c, dist, hit = views([[0.0, 0.3, 2.2]], width=4, height=4)

@@ -64,6 +64,14 @@ def test_new_rays_reset_the_occupancy():
     assert ens.occupancy() is not None
 
 
+def test_a_warm_up_of_zero_builds_the_grid_after_the_first_step():
+    ens = Ensemble(*BOX, n_members=1, config=tiny_config(**dict(SKIPPING, occupancy_warmup=0)), seed=0)
+    ens.set_rays(*views(FOUR_SIDES[:1], width=8, height=8))
+    assert ens.occupancy() is None
+    ens.train(1)
+    assert ens.occupancy() is not None
+
+
 def test_skipping_nothing_changes_neither_colours_nor_gradients():
     ens = Ensemble(*BOX, n_members=2, config=tiny_config(n_samples=16), seed=3)
     o, d = camera_rays([0.3, 0.4, 2.5], width=6, height=6)
@@ -97,6 +105,22 @@ def test_save_load_keeps_the_occupancy(tmp_path):
     assert np.array_equal(ens2.occupancy(), ens.occupancy())
     ens2.set_rays(*rays)
     assert ens2.occupancy() is None
+
+
+def test_a_save_during_the_warm_up_resumes_it(tmp_path):
+    rays = views(FOUR_SIDES[:2], width=16, height=16)
+    ens = Ensemble(*BOX, n_members=1, config=tiny_config(**SKIPPING), seed=1)
+    ens.set_rays(*rays)
+    ens.train(30)  # 2 steps before the warm-up (32) ends
+    ens.save(tmp_path / "field.npz")
+    ens2 = Ensemble.load(tmp_path / "field.npz")
+    ens2.set_rays(*rays, reset_occupancy=False)
+    for e in (ens, ens2):
+        e.train(1)
+        assert e.occupancy() is None
+        e.train(1)
+        assert e.occupancy() is not None
+    assert np.array_equal(ens2.occupancy(), ens.occupancy())
 
 
 def test_empty_ray_loss_clears_the_background():

@@ -98,7 +98,8 @@ class FieldConfig:
         Training steps between refreshes of the grid.
     occupancy_warmup:
         Training steps without skipping after the rays are set (or
-        replaced), before the first refresh.
+        replaced), before the first refresh (0 acts as 1: the first grid
+        comes from the fields after one step).
     """
 
     n_levels: int = 4

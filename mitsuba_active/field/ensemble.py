@@ -110,6 +110,8 @@ class Ensemble:
         if not is_whole(n_members) or not 1 <= n_members <= MAX_MEMBERS:
             raise UserError(f"Ensemble needs a whole number n_members in [1, {MAX_MEMBERS}], got {n_members!r}")
         self.n_members = int(n_members)
+        if not is_whole(seed) or not 0 <= seed < 2**63:  # numpy's seeds, and the file's int64
+            raise UserError(f"Ensemble needs a whole number seed in [0, 2^63), got {seed!r}")
         self.seed = int(seed)
         self.layout = GridLayout.from_config(self.config)
         pad = self.config.bbox_padding * extent
@@ -353,7 +355,8 @@ class Ensemble:
         cfg = self.config
         if cfg.occupancy_resolution > 0:
             self._occupancy_age += 1
-            since = self._occupancy_age - int(cfg.occupancy_warmup)
+            # The age is counted after each step, so a warm-up of 0 refreshes after the first step.
+            since = self._occupancy_age - max(1, int(cfg.occupancy_warmup))
             if since >= 0 and since % int(cfg.occupancy_interval) == 0:
                 self._refresh_occupancy()
 
@@ -445,7 +448,9 @@ class Ensemble:
 
         Returns:
             dict: ``rgb`` (K,N,3) in [0,1], ``distance`` (K,N) expected metric
-            distance of the hit from the origin (0 where opacity ~ 0),
+            distance of the hit from the origin, given a hit (the mean depth of
+            whatever density a ray meets, however faint; it falls to 0 only
+            below an opacity of 1e-6, and is 0 for a ray that misses the box),
             ``opacity`` (K,N).
         """
         rgb, dist, opac = self._render_all(origins, directions)

@@ -28,7 +28,8 @@ key                    dtype / shape     meaning
 ``adam_{m,v}_background`` float32 (K*3,) Adam moments of ``background`` (optional)
 ``occupancy``          float32 (G,G,G)   decaying max of cell opacities, [z,y,x]
                                          (only with empty-space skipping active)
-``occupancy_age``      int64 ()          steps since the grid was reset (idem)
+``occupancy_age``      int64 ()          steps since the grid was reset (with
+                                         ``occupancy_resolution > 0``, warm-up included)
 =====================  ================  ==========================================
 
 Training rays are not stored (call ``set_rays`` again after loading).
@@ -75,10 +76,11 @@ def save_ensemble(ens, path) -> Path:
         _, m, v, _ = st[key][3]
         arrays[f"adam_m_{key}"] = np.array(m, np.float32)
         arrays[f"adam_v_{key}"] = np.array(v, np.float32)
+    if ens.config.occupancy_resolution > 0:  # the age counts the warm-up too
+        arrays["occupancy_age"] = np.int64(ens._occupancy_age)
     if ens._occupancy is not None:
         G = int(ens.config.occupancy_resolution)
         arrays["occupancy"] = np.array(ens._occupancy, np.float32).reshape(G, G, G)
-        arrays["occupancy_age"] = np.int64(ens._occupancy_age)
     if path.is_dir():
         raise UserError(f"cannot write ensemble file {path}: it is a folder")
     try:
@@ -90,11 +92,14 @@ def save_ensemble(ens, path) -> Path:
 
 
 def _kinds(cls) -> dict:
-    """``{KIND: class}`` of ``cls`` and its subclasses."""
-    found, todo = {}, [cls]
+    """``{KIND: class}`` of ``cls`` and those of its subclasses that name a
+    kind of their own; a subclass that only inherits a ``KIND`` (a user's
+    ``class Logged(Ensemble)``) never stands in for the class it came from."""
+    found, todo = {cls.KIND: cls}, list(cls.__subclasses__())
     while todo:
         c = todo.pop()
-        found[c.KIND] = c
+        if "KIND" in c.__dict__:
+            found.setdefault(c.KIND, c)
         todo += c.__subclasses__()
     return found
 
@@ -152,5 +157,6 @@ def _ensemble_from(cls, z, path):
         if z["occupancy"].shape != (G, G, G):
             raise UserError(f"{path}: occupancy shape {z['occupancy'].shape} does not match its config")
         ens._set_occupancy(z["occupancy"].ravel())
+    if "occupancy_age" in z:
         ens._occupancy_age = int(z["occupancy_age"])
     return ens

@@ -107,7 +107,8 @@ def sample_along_rays(o, d, params: FieldParams, jitter=None):
     """Stratified sample positions, one block of S samples per ray.
 
     Args:
-        o, d: per-ray ``mi.Point3f`` / ``mi.Vector3f`` (length R).
+        o, d: per-ray ``mi.Point3f`` / ``mi.Vector3f`` (length R; either
+            may have length 1, shared by all rays).
         jitter: per-sample ``mi.Float`` in [0, 1) (length R*S), or None for
             bin midpoints (deterministic rendering).
     Returns:
@@ -117,7 +118,7 @@ def sample_along_rays(o, d, params: FieldParams, jitter=None):
         per ray (length R) ``ray_valid`` (Bool: the ray meets the box).
     """
     S = int(params.n_samples)
-    R = dr.width(o)
+    R = max(dr.width(o), dr.width(d))  # one origin (a pinhole camera's) may serve every ray
     t_near, t_far = ray_box(o, d, params.box_min, params.box_max)
     i = dr.arange(mi.UInt32, R * S)
     ray = i // S
@@ -125,8 +126,8 @@ def sample_along_rays(o, d, params: FieldParams, jitter=None):
     # Gathering the per-ray quantities keeps everything in one flat kernel.
     tn = dr.gather(mi.Float, t_near, ray)
     tf = dr.gather(mi.Float, t_far, ray)
-    oo = dr.gather(mi.Point3f, o, ray)
-    dd = dr.gather(mi.Vector3f, d, ray)
+    oo = dr.gather(mi.Point3f, o, ray) if dr.width(o) > 1 else mi.Point3f(o)
+    dd = dr.gather(mi.Vector3f, d, ray) if dr.width(d) > 1 else mi.Vector3f(d)
     valid = tf > tn
     length = dr.maximum(tf - tn, 0.0)
     delta = length * (1.0 / S)
@@ -375,7 +376,8 @@ def render_flat(params: FieldParams, o, d, member, jitter=None, return_weights=F
     Returns:
         dict: ``rgb`` (Color3f, composited over the member's background),
         ``distance`` (Float, expected distance of the hit,
-        ``sum w t / sum w``; 0 where opacity is ~0), ``opacity`` (Float),
+        ``sum w t / max(sum w, 1e-6)``: given a hit, so faint density gives
+        its depth too; 0 where the ray misses the box), ``opacity`` (Float),
         and ``weights`` (Float, R*S) if ``return_weights``.
     """
     s = sample_along_rays(o, d, params, jitter)

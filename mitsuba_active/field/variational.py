@@ -144,7 +144,7 @@ class VariationalField(Ensemble):
         std = dr.exp(log_std)
         outs = []
         for k in range(self.draws):
-            # Fixed draws: the same rays give the same prediction.
+            # Fixed draws: the same rays, in the same order, give the same prediction.
             key = dr.opaque(mi.UInt32, (self.seed * 0x9E3779B1 + k * 0x7FEB352D + 1) & 0xFFFFFFFF)
             outs.append(_shade(params, s, mean + std * standard_normal4(index, key), 0))
         return outs

@@ -82,6 +82,19 @@ def _escape_line_breaks(message: str) -> str:
     return message.replace("\r", "\\r").replace("\n", "\\n")
 
 
+def _caused_by_interrupt(exc) -> bool:
+    """Whether ``exc`` is, or wraps, a KeyboardInterrupt: Dr.Jit's loops and
+    custom operations re-raise what their Python bodies raised (Ctrl-C, or
+    SIGTERM through :func:`_stop`) as a RuntimeError caused by it."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 def _one_line_errors(fn):
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -100,7 +113,9 @@ def _one_line_errors(fn):
         except OSError as exc:  # an output folder that cannot be created or written, a full disk...
             click.echo(f"mitsuba-active: error: {_escape_line_breaks(_os_error_line(exc))}", err=True)
             sys.exit(2)
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, RuntimeError) as exc:
+            if not _caused_by_interrupt(exc):
+                raise
             _close_progress_bars()
             click.echo("mitsuba-active: interrupted", err=True)
             # An interrupt that landed inside exec() of a source string (dataclasses

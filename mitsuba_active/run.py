@@ -272,6 +272,9 @@ def config_changes(recorded, current: dict, compare_scene: bool = True) -> dict:
             planner = make_planner(name, **dict(config.get("planner_options") or {}))
         except (UserError, TypeError, ValueError):  # not a record of this tool's planners
             planner = None
+        if planner is not None:  # options as the planner resolves them: defaults given or not, alike
+            resolved = {**dict(config.get("planner_options") or {}), **planner.options()}
+            config["planner_options"] = json.loads(json.dumps(resolved, default=_json_default))
         if planner is not None and is_whole(config.get("ensemble")):
             config["ensemble"] = planner.ensemble_size(config["ensemble"]) if planner.needs_ensemble else None
         scene = config.pop("scene", None)
@@ -283,6 +286,8 @@ def config_changes(recorded, current: dict, compare_scene: bool = True) -> dict:
     keys = [k for k in sorted(set(old) | set(new)) if old.get(k) != new.get(k)]
     if "planner" in keys and None in (old.get("ensemble"), new.get("ensemble")) and "ensemble" in keys:
         keys.remove("ensemble")  # one of the planners trains no ensemble: the planner says it all
+    if "planner" in keys and "planner_options" in keys:
+        keys.remove("planner_options")  # each planner's own: the planner says it all
     return {k: (old.get(k), new.get(k)) for k in keys}
 
 
@@ -538,7 +543,10 @@ def source_differences(source, cfg: RunConfig) -> list[str]:
     unlike = [f"{name}={getattr(cfg, name)!r} (the source's: {value!r})"
               for name, value in have.items() if getattr(cfg, name) != value]
     scene = Path(source.scene.path)
-    if not cfg.scene or Path(cfg.scene).resolve() != scene.resolve():
+    if source.scene.content_hash is None:  # built in Python: no file for run.json to name
+        unlike.insert(0, f"scene={cfg.scene!r} (the source's: {str(source.scene.path)!r}, built in Python, "
+                         "which no file records)")
+    elif not cfg.scene or Path(cfg.scene).resolve() != scene.resolve():
         unlike.insert(0, f"scene={cfg.scene!r} (the source's: {str(scene)!r})")
     return unlike
 

@@ -172,6 +172,14 @@ def test_a_scene_built_in_python_is_a_view_source(tmp_path, monkeypatch):
     # Nothing on disk keys a scene in memory: its views are never cached.
     cached = sorted((tmp_path / "cache").rglob("*.exr"))
     assert len(cached) == 1  # the XML's view (the same index both times), none of the Python scenes'
+    # A run records its scene by its file: one built in Python is refused, whatever name it is given.
+    from mitsuba_active.run import Run, RunConfig
+
+    cfg = RunConfig(scene="ball", planner="even", budget=2, initial_views=1, candidates=4, heldout=2,
+                    resolution=12, spp=4, eval_views=(2,))
+    with pytest.raises(UserError, match="scene='ball' \\(the source's: 'ball', built in Python"):
+        Run(source, cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
 
 
 @pytest.mark.parametrize("scene, message", [

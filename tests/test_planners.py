@@ -323,3 +323,19 @@ def test_a_planners_answer_is_checked(answer, message):
         Odd().checked_select(PlanningState(CANDS, []), 1)
     picks, scores = make_planner("coverage").checked_select(PlanningState(CANDS, [0]), 2)
     assert len(picks) == 2 and all(type(i) is int for i in picks) and scores.dtype == np.float64
+
+
+def test_a_planner_that_changes_the_state_in_place_changes_nothing_of_the_run():
+    from mitsuba_active.planners import Planner
+
+    class Greedy(Planner):  # keeps its picks in the state's own lists
+        name = "greedy"
+
+        def select(self, state, batch):
+            state.captured.append(5)
+            state.candidates.pop()
+            return [5], None
+
+    state = PlanningState(CANDS, [0, 1])
+    assert Greedy().checked_select(state, 1) == ([5], None)
+    assert state.captured == [0, 1] and len(state.candidates) == len(CANDS) == 12

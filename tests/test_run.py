@@ -173,6 +173,13 @@ def test_ensemble_size_counts_only_where_a_planner_trains_one(source, tmp_path):
     # Another planner that trains none: the planner is the difference, not an ensemble of None.
     assert config_differences(cfg("rfe", 2), cfg("even", 2)) == ["planner: 'rfe' -> 'even'"]
     assert config_differences(cfg("rfe", 3), cfg("fisher", 1)) == ["ensemble: 3 -> 1", "planner: 'rfe' -> 'fisher'"]
+    # A planner's defaults, given or left out, are the same run; other values are not.
+    with_options = {**cfg("rfe", 2), "planner_options": {"form": "sum"}}
+    assert config_differences(cfg("rfe", 2), with_options) == []
+    assert config_differences(with_options, {**with_options, "planner_options": {"form": "log"}}) == [
+        "planner_options: {'form': 'sum'} -> {'form': 'log'}"]
+    fisher = cfg("fisher", 1)
+    assert config_differences(fisher, {**fisher, "planner_options": {"lam": 0.1}}) == []
     done = _run(source, tmp_path / "e", planner="even", ensemble=3)
     assert _run(source, tmp_path / "e", planner="even", ensemble=2)["captured"] == done["captured"]
 

@@ -15,7 +15,7 @@ import importlib.util
 import inspect
 import sys
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +37,8 @@ class PlanningState:
         candidate_rays: ``(origins, directions)``, each (C, R, 3) float32: a
             fixed sparse set of R rays per candidate.
         rng: the run's ``numpy.random.Generator``; when not given, one seeded
-            with 0, so that a planner's picks repeat from call to call.
+            with 0, so that a state made anew gives the same picks (each call
+            moves one state's stream on, as a run's rounds do).
     """
 
     candidates: list
@@ -107,8 +108,10 @@ class Planner:
     def checked_select(self, state: PlanningState, batch: int) -> tuple[list[int], np.ndarray | None]:
         """:meth:`select`, with its answer checked (a planner of the user's own
         may answer anything): UserError unless it is ``batch`` candidate indices and
-        C scores or None. Returns the picks as ints and the scores as float64."""
-        answer = self.select(state, batch)
+        C scores or None. Returns the picks as ints and the scores as float64.
+        The planner gets its own copies of the candidate and captured lists, so
+        that changing them in place changes nothing of the run's."""
+        answer = self.select(replace(state, candidates=list(state.candidates), captured=list(state.captured)), batch)
         n = len(state.candidates)
         expected = (f"select(state, batch) must return (indices, scores): {batch} candidate indices (whole "
                     f"numbers) in [0, {n}), and {n} scores or None")

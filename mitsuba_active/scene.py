@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import os
+import re
 import shutil
 import tempfile
 import warnings
@@ -252,9 +253,11 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
     out_dir = out_xml.parent if str(out_xml.parent) else Path(".")
     added = new_entries(out_dir)  # undone on failure
     out_dir.mkdir(parents=True, exist_ok=True)
-    mesh_file = f"{mesh_path.stem}.ply"
+    # Written names go into the XML: characters XML or Mitsuba's $parameters would misread become _.
+    stem = re.sub(r"[^\w.-]", "_", mesh_path.stem)
+    mesh_file = f"{stem}.ply"
     if (out_dir / mesh_file).resolve() == mesh_path.resolve():
-        mesh_file = f"{mesh_path.stem}_scene.ply"  # never overwrite the user's own mesh
+        mesh_file = f"{stem}_scene.ply"  # never overwrite the user's own mesh
     tex_file, staging = None, None
     try:
         try:
@@ -264,11 +267,15 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
         # Mitsuba's PLY reader takes v as given, OBJ/trimesh UVs have v up: flip.
         write_ply(staging / mesh_file, vertices, mesh.faces, None if uv is None else
                   np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1))
+        if texture is not None:
+            tex_file = f"{stem}_texture{'.png' if texture == 'embedded' else Path(texture).suffix.lower()}"
+            target = out_dir / tex_file
+            if (out_dir.resolve() == mesh_path.parent.resolve() and target.exists()
+                    and (texture == "embedded" or target.resolve() != Path(texture).resolve())):
+                tex_file = f"{stem}_scene_texture{target.suffix}"  # never overwrite the mesh's own texture
         if texture == "embedded":
-            tex_file = f"{mesh_path.stem}_texture.png"
             _embedded_image(mesh).save(staging / tex_file)
         elif texture is not None:
-            tex_file = f"{mesh_path.stem}_texture{Path(texture).suffix.lower()}"
             shutil.copyfile(texture, staging / tex_file)
         (staging / out_xml.name).write_text(_scene_xml(mesh_file, tex_file, opts))
         try:  # validate before anything lands

@@ -641,6 +641,9 @@ def test_a_dataset_refuses_spp_and_notes_missing_frames(shared_data, tmp_path):
     mic = shared_data / "datasets" / "nerf_synthetic_mic"
     code, text = run_cli("plan", mic, "--spp", "4", "--out", tmp_path / "a")
     assert_one_line_error(code, text, "--spp applies to scenes")
+    code, text = run_cli("plan", mic, "--distance-weight", "0.5", "--out", tmp_path / "a")
+    assert_one_line_error(code, text, "--distance-weight needs distances, and nerf_synthetic_mic has no depth maps")
+    assert not (tmp_path / "a").exists()
     code, text = run_cli("plan", mic, "--heldout", "500", "--planner", "even", "--budget", "2", "--eval-views", "2",
                          "--eval-steps", "5", "--resolution", "25", "--quiet", "--out", tmp_path / "b")
     assert code == 0, text

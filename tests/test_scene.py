@@ -17,6 +17,35 @@ def test_spot_scene_is_textured_normalised_and_loads_in_plain_mitsuba(spot_xml):
     assert np.allclose(np.array(bbox.max) + np.array(bbox.min), 0.0, atol=1e-4)
 
 
+def test_a_texture_given_beside_the_mesh_leaves_the_meshs_own_alone(tmp_path, shared_data):
+    import shutil
+
+    from PIL import Image
+
+    for name in ("spot.obj", "spot_texture.png"):
+        shutil.copyfile(shared_data / "meshes" / name, tmp_path / name)
+    own = (tmp_path / "spot_texture.png").read_bytes()
+    Image.new("RGB", (8, 8), (200, 30, 30)).save(tmp_path / "red.png")
+    xml = scene_from_mesh(tmp_path / "spot.obj", tmp_path / "spot.xml", texture=tmp_path / "red.png")
+    assert (tmp_path / "spot_texture.png").read_bytes() == own
+    assert 'value="spot_scene_texture.png"' in xml.read_text()
+    assert (tmp_path / "spot_scene_texture.png").read_bytes() == (tmp_path / "red.png").read_bytes()
+    # Without --texture the mesh's own is used where it lies.
+    xml = scene_from_mesh(tmp_path / "spot.obj", tmp_path / "spot.xml")
+    assert 'value="spot_texture.png"' in xml.read_text() and (tmp_path / "spot_texture.png").read_bytes() == own
+
+
+def test_mesh_names_that_xml_or_mitsuba_would_misread_are_written_plainly(tmp_path, shared_data):
+    import shutil
+
+    mesh = tmp_path / 'R&D "v2" $res.obj'
+    shutil.copyfile(shared_data / "meshes" / "suzanne.obj", mesh)
+    xml = scene_from_mesh(mesh, tmp_path / "out" / "s.xml")
+    assert (tmp_path / "out" / "R_D__v2___res.ply").is_file()
+    scene = load_scene(xml)  # the XML parses, and Mitsuba finds the mesh
+    assert np.isclose(np.max(scene.bbox_max - scene.bbox_min), 1.0, atol=1e-4)
+
+
 def test_up_axis_rotates_z_up_meshes_to_y_up():
     v = np.array([[0, 0, 0], [0.1, 0.2, 3.0]])  # tall along z
     y_up = normalise_vertices(v, "z")

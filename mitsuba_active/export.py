@@ -43,11 +43,14 @@ def export_transforms(run_dir, out_dir=None) -> Path:
         budget = rec["config"].get("budget", "?")
         warnings.warn(f"{run_dir} is an unfinished run: exporting the {len(cams)} of {budget} views captured so far",
                       stacklevel=2)
-    missing = [n for n in range(len(cams)) if not (run_dir / "views" / f"view_{n:03d}.png").is_file()]
-    if missing:
-        raise UserError(f"{run_dir}/views is missing images for views {missing}")
     # A run of a dataset without depth maps has no distances to export.
     distances = rec.get("distances", True)
+    suffixes = (".png", ".exr") if distances else (".png",)
+    missing = [n for n in range(len(cams))
+               if not all((run_dir / "views" / f"view_{n:03d}{suffix}").is_file() for suffix in suffixes)]
+    if missing:
+        raise UserError(f"{run_dir}/views is missing images{' or distance maps' if distances else ''} "
+                        f"for views {missing}")
     _check_views(run_dir / "views", cams, distances)
     ref = cams[0]
     k = ref.intrinsics()

@@ -749,6 +749,12 @@ def test_export_refuses_damaged_view_files(finished_run, tmp_path):
         code, text = run_cli("export", tmp_path / "run")
         assert_one_line_error(code, text, f"views/{name} is damaged (it does not read as an image")
         assert not (tmp_path / "run" / "export").exists()
+    # A missing distance map is named missing (not damaged), in one line.
+    (tmp_path / "run" / "views" / "view_000.png").unlink()
+    (tmp_path / "run" / "views" / "view_001.exr").unlink()
+    code, text = run_cli("export", tmp_path / "run")
+    assert_one_line_error(code, text, "views is missing images or distance maps for views [0, 1]")
+    assert not (tmp_path / "run" / "export").exists()
 
 
 def test_a_run_folder_in_use_is_refused_and_left_alone(finished_run, spot_xml, tmp_path):

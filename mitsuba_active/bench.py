@@ -40,7 +40,7 @@ import numpy as np
 
 from .checks import not_a_file, setting_value
 from .errors import UserError
-from .imageio_utils import folder_name, replaced_folder
+from .imageio_utils import folder_name, new_entries, remove_new, replaced_folder
 from .metrics import iqm, standard_error
 
 SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture")
@@ -264,8 +264,9 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
     """Author the mesh scenes and list every run of the suite.
 
     ``overrides`` (see :func:`parse_overrides`) win over the suite's and the
-    scenes' settings. Every job's settings are checked before anything is
-    written. A mesh scene is authored anew each time (``author``);
+    scenes' settings. Every job's settings are checked, and every scene and
+    mesh loaded, before anything is written (a failed authoring leaves
+    nothing of its own behind). A mesh scene is authored anew each time (``author``);
     authoring is deterministic, so unchanged scenes keep their content hash
     and their finished runs. A folder whose runs were made with another scene
     or other settings is refused before anything is replaced or run. Without
@@ -274,7 +275,7 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
     from .planners import make_planner, planner_label
     from .planners.base import planner_digest, resolve_reference
     from .run import RunConfig, field_config
-    from .scene import content_hash
+    from .scene import content_hash, load_mesh, load_scene
 
     if profile not in PROFILES:
         raise UserError(f"unknown profile '{profile}'; use quick or full")
@@ -349,15 +350,41 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                                 str(out_dir / "runs" / sc.name / f"{folder_name(planner.name)}-seed{seed}"),
                                 planner_digest=digests[planner.name]))
     if author:
-        for sc in suite.scenes:
-            if sc.name in meshes:
-                _author_suite_scene(sc, meshes[sc.name], [j for j in jobs if j.scene == sc.name])
+        selected = [sc for sc in suite.scenes if any(j.scene == sc.name for j in jobs)]
+        with _mitsuba_warnings_muted():  # its runs show them, once
+            for sc in selected:  # a scene that cannot load stops the suite before any is authored or run
+                try:
+                    load_mesh(sc.path) if sc.kind == "mesh" else load_scene(sc.path)
+                except UserError as exc:
+                    raise UserError(f"scene '{sc.name}': {exc}") from None
+        added = new_entries(out_dir)
+        try:
+            for sc in selected:
+                if sc.name in meshes:
+                    _author_suite_scene(sc, meshes[sc.name], [j for j in jobs if j.scene == sc.name])
+        except BaseException:
+            remove_new(out_dir, *added)
+            raise
     hashes = {xml: content_hash(Path(xml)) if Path(xml).is_file() else None for xml in {j.scene_xml for j in jobs}}
     for job in jobs:
         job.content_hash = hashes[job.scene_xml]
     if author:
         _refuse_other_runs(jobs)
     return jobs
+
+
+@contextlib.contextmanager
+def _mitsuba_warnings_muted():
+    """Mitsuba logs errors only (a scene it cannot load raises all the same)."""
+    import mitsuba as mi
+
+    logger = mi.logger()
+    level = logger.log_level()
+    logger.set_log_level(mi.LogLevel.Error)
+    try:
+        yield
+    finally:
+        logger.set_log_level(level)
 
 
 def _recorded(job: Job) -> dict | None:

@@ -316,6 +316,21 @@ def test_a_suite_scene_that_is_no_xml_file_is_refused(tmp_path, shared_data):
         load_suite(tmp_path / "s.toml")
 
 
+def test_a_scene_that_cannot_load_stops_the_suite_before_anything_is_authored_or_run(tiny_suite, tmp_path):
+    from mitsuba_active.bench import plan_jobs
+
+    (tmp_path / "broken.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\n")
+    (tmp_path / "missing_mesh.xml").write_text(
+        '<scene version="3.0.0"><shape type="obj"><string name="filename" value="nowhere.obj"/></shape></scene>')
+    for entry, message in (('mesh = "broken.ply"', "scene 'late': cannot read mesh"),
+                           ('xml = "missing_mesh.xml"', "scene 'late': ")):
+        suite = tmp_path / "late.toml"
+        suite.write_text(tiny_suite.read_text() + f'[[scenes]]\nname = "late"\n{entry}\n')
+        with pytest.raises(UserError, match=message):
+            plan_jobs(load_suite(suite), tmp_path / "out", "quick")
+        assert not (tmp_path / "out").exists()  # the ball scene before it was not authored either
+
+
 def test_missing_suite(tmp_path):
     with pytest.raises(UserError, match="not found"):
         load_suite(tmp_path / "none.toml")

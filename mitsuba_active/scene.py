@@ -363,13 +363,16 @@ def _one_line(exc) -> str:
     return text if len(text) <= 300 else text[:297] + "..."
 
 
-def _referenced_files(xml_path: Path, seen=None, base: Path | None = None) -> list[Path]:
+def _referenced_files(xml_path: Path, seen=None, base: Path | None = None, params=None) -> list[Path]:
     """Existing files an XML names (``filename`` strings and includes), recursively.
 
     Names resolve against the including file's folder or the top-level
-    scene's folder, as Mitsuba's file resolver does. UserError if malformed.
+    scene's folder, as Mitsuba's file resolver does, with ``$`` parameters
+    replaced by ``params`` (the values the scene is loaded with) or, failing
+    those, the XML's ``<default>`` values. UserError if malformed.
     """
     seen = set() if seen is None else seen
+    params = {k: str(v) for k, v in (params or {}).items()}
     base = base or xml_path.parent
     try:
         root = ET.parse(xml_path).getroot()
@@ -379,11 +382,15 @@ def _referenced_files(xml_path: Path, seen=None, base: Path | None = None) -> li
         raise UserError(f"cannot read {xml_path}: {exc.strerror}") from None
     if root.tag != "scene":
         raise UserError(f"{xml_path} is not a Mitsuba scene (root element <{root.tag}>, expected <scene>)")
+    for el in root.iter("default"):
+        params.setdefault(el.get("name"), el.get("value"))
     files = []
     for el in root.iter():
         name = el.get("filename") if el.tag == "include" else (
             el.get("value") if el.tag == "string" and el.get("name") == "filename" else None)
-        if not name or "$" in name:
+        if name and "$" in name:
+            name = re.sub(r"\$(\w+)", lambda m: params.get(m.group(1)) or m.group(0), name)
+        if not name or "$" in name:  # a parameter given neither a value nor a default
             continue
         f = next((p.resolve() for p in (xml_path.parent / name, base / name) if p.is_file()), None)
         if f is None or f in seen:
@@ -391,7 +398,7 @@ def _referenced_files(xml_path: Path, seen=None, base: Path | None = None) -> li
         seen.add(f)
         files.append(f)
         if el.tag == "include":
-            files += _referenced_files(f, seen, base)
+            files += _referenced_files(f, seen, base, params)
     return files
 
 
@@ -400,7 +407,7 @@ def content_hash(xml_path: Path, refs: list[Path] | None = None, **params) -> st
     (``refs``, found anew if None): what a run's ground truth depends on."""
     h = hashlib.sha256(Path(xml_path).read_bytes())
     h.update(repr(sorted(params.items())).encode())
-    for f in _referenced_files(Path(xml_path)) if refs is None else refs:
+    for f in _referenced_files(Path(xml_path), params=params) if refs is None else refs:
         h.update(f.read_bytes())
     return h.hexdigest()
 
@@ -457,7 +464,7 @@ def load_scene(xml_path, **params) -> Scene:
     if xml_path.suffix.lower() in MESH_SUFFIXES:
         raise UserError(f"{xml_path} is a mesh, not a Mitsuba scene: author one around it first with "
                         f"'mitsuba-active scene {xml_path} -o scene.xml'")
-    refs = _referenced_files(xml_path)
+    refs = _referenced_files(xml_path, params=params)
     mi_scene = _load_mitsuba(xml_path, **params)
     return _describe(mi_scene, xml_path, content_hash(xml_path, refs, **params))
 

@@ -118,6 +118,19 @@ def test_content_hash_follows_referenced_files(tmp_path, shared_data):
     assert load_scene(a).content_hash != h1
 
 
+def test_content_hash_follows_files_named_through_parameters(tmp_path, shared_data):
+    import shutil
+
+    shutil.copyfile(shared_data / "meshes" / "suzanne.obj", tmp_path / "a.obj")
+    xml = tmp_path / "s.xml"
+    xml.write_text('<scene version="3.0.0"><default name="m" value="a.obj"/>'
+                   '<emitter type="constant"/><shape type="obj"><string name="filename" value="$m"/></shape></scene>')
+    h1 = load_scene(xml).content_hash
+    with open(tmp_path / "a.obj", "a") as f:
+        f.write("# edited\n")  # the same bounds and renders: only the hash can tell
+    assert load_scene(xml).content_hash != h1
+
+
 def test_interior_free_space(shared_data):
     scene = load_scene(shared_data / "mitsuba/cbox/cbox.xml")
     inside_box = [185.0, 80.0, 169.0]

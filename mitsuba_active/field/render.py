@@ -370,7 +370,7 @@ def render_flat(params: FieldParams, o, d, member, jitter=None, return_weights=F
     """Render R rays, ray ``r`` with member ``member[r]`` (or one int member).
 
     Args:
-        o: ``mi.Point3f`` (R), d: ``mi.Vector3f`` (R, unit length),
+        o: ``mi.Point3f`` (R, or 1: one origin for every ray), d: ``mi.Vector3f`` (R, unit length),
         member: int, or ``mi.UInt32`` (R) member index per ray.
         jitter: per-sample ``mi.Float`` (R*S) in [0,1) or None (midpoints).
     Returns:
@@ -413,7 +413,7 @@ def render_rays_dr(field, o, d, member=0):
     Args:
         field: an :class:`~mitsuba_active.field.Ensemble` or a
             :class:`FieldParams`.
-        o: ``mi.Point3f`` ray origins, d: ``mi.Vector3f`` unit directions
+        o: ``mi.Point3f`` ray origins (or one for every ray), d: ``mi.Vector3f`` unit directions
             (e.g. ``ray.o``, ``ray.d`` of an ``mi.Ray3f`` inside an
             integrator), member: int or ``mi.UInt32`` per ray.
     Returns:

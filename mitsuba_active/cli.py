@@ -25,7 +25,7 @@ with interruptible_imports():  # click and numpy load here, after the package's 
     import click
     from click.core import ParameterSource
 
-    from .console import mitsuba_log_as_warnings, show_warning
+    from .console import mitsuba_log_as_warnings, one_line, show_warning
     from .errors import UserError
     from .imageio_utils import folder_name, new_entries, remove_new
     from .scenes import BUNDLED_SCENE
@@ -76,12 +76,6 @@ def _close_progress_bars() -> None:
         bar.close()
 
 
-def _escape_line_breaks(message: str) -> str:
-    """``message`` on one line: line breaks (in a file's name, or quoted from a
-    library's message) shown as ``\\n``, so that an error is always one line."""
-    return message.replace("\r", "\\r").replace("\n", "\\n")
-
-
 def _caused_by_interrupt(exc) -> bool:
     """Whether ``exc`` is, or wraps, a KeyboardInterrupt: Dr.Jit's loops and
     custom operations re-raise what their Python bodies raised (Ctrl-C, or
@@ -108,10 +102,10 @@ def _one_line_errors(fn):
                     _load_libraries()
                 return fn(*args, **kwargs)
         except UserError as exc:
-            click.echo(f"mitsuba-active: error: {_escape_line_breaks(str(exc))}", err=True)
+            click.echo(f"mitsuba-active: error: {one_line(str(exc))}", err=True)
             sys.exit(2)
         except OSError as exc:  # an output folder that cannot be created or written, a full disk...
-            click.echo(f"mitsuba-active: error: {_escape_line_breaks(_os_error_line(exc))}", err=True)
+            click.echo(f"mitsuba-active: error: {one_line(_os_error_line(exc))}", err=True)
             sys.exit(2)
         except (KeyboardInterrupt, RuntimeError) as exc:
             if not _caused_by_interrupt(exc):

@@ -13,10 +13,16 @@ import sys
 import warnings
 
 
+def one_line(message: str) -> str:
+    """``message`` on one line: line breaks (in a file's name, or quoted from a
+    library's message) shown as ``\\n``, so that an error or a warning is always one line."""
+    return message.replace("\r", "\\r").replace("\n", "\\n")
+
+
 def show_warning(message, category, filename, lineno, file=None, line=None):
     """Warnings (skipped dataset frames, a scene without lights) as one plain line,
     above any progress bar rather than into it."""
-    text = f"mitsuba-active: warning: {message}"
+    text = f"mitsuba-active: warning: {one_line(str(message))}"
     tqdm = sys.modules.get("tqdm")
     if tqdm is not None:
         tqdm.tqdm.write(text, file=sys.stderr)

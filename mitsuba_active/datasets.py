@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import MITSUBA_TO_OPENGL, Camera, rigid_pose
-from .checks import is_whole
-from .errors import UserError
+from .checks import is_number, is_whole
+from .errors import UserError, first_line
 from .groundtruth import View
 from .imageio_utils import linear_to_srgb, read_exr, srgb_to_linear
 
@@ -141,8 +141,8 @@ class DatasetSource:
         bounds = _bounds_from_keys(metas)
 
         # Parse everything first (errors name the frame), then drop missing images.
-        train = [_parse_frame(fr, meta, jf, i) for i, (fr, meta, jf) in enumerate(train)]
-        test = [_parse_frame(fr, meta, jf, i) for i, (fr, meta, jf) in enumerate(test)]
+        train = [_parse_frame(*t) for t in train]
+        test = [_parse_frame(*t) for t in test]
         missing = [t[0] for t in train + test if not t[0].is_file()]
         if missing:
             warnings.warn(f"{name}: skipped {len(missing)} of {len(train) + len(test)} frames whose image "
@@ -160,8 +160,15 @@ class DatasetSource:
         if int(downscale) != downscale or int(downscale) < 1:
             raise UserError(f"downscale must be a positive integer, got {downscale}")
         downscale = int(downscale)
-        train = _subsample([_make_frame(t, downscale) for t in train], n_candidates)
-        test = _subsample([_make_frame(t, downscale) for t in test], n_heldout)
+        # One window size for every frame (views share one resolution): the
+        # smallest frame's, so that per-frame principal points a fraction of
+        # a pixel apart do not give crops a pixel apart.
+        train = [(t, _full_size(t)) for t in train]
+        test = [(t, _full_size(t)) for t in test]
+        windows = [_window(t, full, downscale) for t, full in train + test]
+        size = (min(w[2] for w in windows), min(w[3] for w in windows))
+        train = _subsample([_make_frame(t, full, downscale, size) for t, full in train], n_candidates)
+        test = _subsample([_make_frame(t, full, downscale, size) for t, full in test], n_heldout)
         if not test:
             raise UserError(f"{root}: no held-out frames to evaluate on (no test or val split, or "
                             "a held-out count of 0); tag some frames \"split\": \"test\"")
@@ -246,21 +253,46 @@ def area_downscale(img: np.ndarray, f: int) -> np.ndarray:
     return img.reshape(h // f, f, w // f, f, *img.shape[2:]).mean(axis=(1, 3))
 
 
-def _read_rgb(path: Path, white_background: bool) -> np.ndarray:
-    """(H, W, 3) float32 sRGB in [0, 1]; alpha is composited (in sRGB, the nerf-synthetic convention)."""
-    if path.suffix.lower() == ".exr":
-        ch = read_exr(path)
-        rgb = ch["RGB"] if "RGB" in ch else np.stack([ch[c] for c in "RGB"], axis=-1)
-        img = np.concatenate([linear_to_srgb(rgb), ch["A"][..., None]], -1) if "A" in ch else linear_to_srgb(rgb)
-    else:
-        import imageio.v3 as iio
+def _read_exr(path: Path, what: str) -> dict:
+    """:func:`~mitsuba_active.imageio_utils.read_exr`, with a file it cannot read as a UserError."""
+    try:
+        return read_exr(path)
+    except Exception as exc:  # noqa: BLE001 (OpenEXR raises RuntimeError, among others)
+        raise UserError(f"cannot read {what} {path}: {first_line(exc)}") from None
 
-        try:
-            raw = iio.imread(path)
-        except Exception as exc:
-            raise UserError(f"cannot read image {path}: {exc}") from None
-        scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(raw.dtype, 1.0)
-        img = raw.astype(np.float32) / scale
+
+def _exr_colour(path: Path, white_background: bool) -> np.ndarray:
+    """(H, W, 3) float32 sRGB of an EXR image: RGB, RGBA or grey (Y); its
+    alpha is premultiplied (EXR's convention), so composited in linear light."""
+    ch = _read_exr(path, "image")
+    if "RGBA" in ch:  # OpenEXR groups R, G, B and A
+        rgb, alpha = ch["RGBA"][..., :3], ch["RGBA"][..., 3]
+    elif "RGB" in ch or "Y" in ch:
+        rgb = ch["RGB"] if "RGB" in ch else np.repeat(ch["Y"][..., None], 3, axis=-1)
+        alpha = ch.get("A")
+    else:
+        raise UserError(f"{path} has no colour channels (RGB, RGBA or Y), only {', '.join(sorted(ch))}")
+    if alpha is not None:
+        rgb = rgb + (1.0 - alpha[..., None]) * (1.0 if white_background else 0.0)
+    return linear_to_srgb(rgb)
+
+
+def _read_rgb(path: Path, white_background: bool) -> np.ndarray:
+    """(H, W, 3) float32 sRGB in [0, 1]; alpha is composited (in sRGB for PNG and JPEG, the
+    nerf-synthetic convention; in linear light for EXR)."""
+    if path.suffix.lower() == ".exr":
+        return np.clip(_exr_colour(path, white_background), 0.0, 1.0).astype(np.float32)
+    import imageio.v3 as iio
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            cmyk = im.mode == "CMYK"  # 4 channels that are no alpha: as RGB
+        raw = iio.imread(path, mode="RGB") if cmyk else iio.imread(path)
+    except Exception as exc:
+        raise UserError(f"cannot read image {path}: {exc}") from None
+    scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(raw.dtype, 1.0)
+    img = raw.astype(np.float32) / scale
     if img.ndim == 2:
         img = img[..., None]
     if img.shape[-1] in (2, 4):  # grey + alpha, RGB + alpha
@@ -275,15 +307,24 @@ def _read_rgb(path: Path, white_background: bool) -> np.ndarray:
 def _read_depth(path: Path, entry: str) -> np.ndarray:
     """(H, W) float32 stored depth values (unscaled); ``entry``: the frame's key naming the file."""
     if path.suffix.lower() == ".exr":
-        ch = read_exr(path)
+        ch = _read_exr(path, "depth map")
         key = next((k for k in ("Z", "Y", "R", "depth") if k in ch), next(iter(ch)))
         d = ch[key]
         return d[..., 0] if d.ndim == 3 else d
     if path.suffix.lower() == ".npy":
-        return np.load(path).astype(np.float32)
+        try:
+            d = np.load(path)
+        except (OSError, ValueError) as exc:
+            raise UserError(f"cannot read depth map {path}: {exc}") from None
+        if d.ndim != 2 or not np.issubdtype(d.dtype, np.number):
+            raise UserError(f"depth map {path} must be a 2-D array of numbers, got {d.dtype} {d.shape}")
+        return d.astype(np.float32)
     import imageio.v3 as iio
 
-    d = iio.imread(path)
+    try:
+        d = iio.imread(path)
+    except Exception as exc:
+        raise UserError(f"cannot read depth map {path}: {exc}") from None
     if d.dtype == np.uint8:
         # 8-bit maps (e.g. nerf-synthetic's r_N_depth_0186.png) are normalised, not metric.
         raise UserError(f"depth map {path} is 8-bit and therefore not metric; remove the frame's {entry}")
@@ -325,10 +366,12 @@ def _locate(path):
 
 def _read_json(path: Path) -> dict:
     try:
-        with open(path) as fh:
+        with open(path, encoding="utf-8") as fh:
             meta = json.load(fh)
     except json.JSONDecodeError as exc:
         raise UserError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
+    except UnicodeDecodeError:
+        raise UserError(f"{path}: not valid JSON (not UTF-8 text)") from None
     except OSError as exc:
         raise UserError(f"{path}: cannot read ({exc.strerror})") from None
     if not isinstance(meta, dict):
@@ -342,13 +385,14 @@ def _read_json(path: Path) -> dict:
 
 
 def _split(metas, files):
-    """``(train, test)`` lists of ``(frame dict, file meta, json path)``."""
+    """``(train, test)`` lists of ``(frame dict, file meta, json path, index in the file's frames)``."""
     if len(metas) == 2:  # nerf-synthetic: the files are the split
         (ftr, mtr), (fte, mte) = metas
-        return [(fr, mtr, ftr) for fr in mtr["frames"]], [(fr, mte, fte) for fr in mte["frames"]]
+        return ([(fr, mtr, ftr, i) for i, fr in enumerate(mtr["frames"])],
+                [(fr, mte, fte, i) for i, fr in enumerate(mte["frames"])])
     jf, meta = metas[0]
     frames = meta["frames"]
-    tagged = [(fr, meta, jf) for fr in frames]
+    tagged = [(fr, meta, jf, i) for i, fr in enumerate(frames)]
     if any("split" in fr for fr in frames):
         test = [t for t in tagged if t[0].get("split") == "test"]
         if not test:
@@ -356,7 +400,10 @@ def _split(metas, files):
         return [t for t in tagged if t[0].get("split", "train") == "train"], test
     if "test_filenames" in meta or "val_filenames" in meta or "train_filenames" in meta:
         def names(key):
-            return {os.path.normpath(str(n)) for n in meta.get(key, [])}
+            listed = meta.get(key, [])
+            if not isinstance(listed, list) or not all(isinstance(n, str) for n in listed):
+                raise UserError(f"{jf}: '{key}' must be a list of file names, got {listed!r}")
+            return {os.path.normpath(n) for n in listed}
 
         held = names("test_filenames") or names("val_filenames")
         train_names = names("train_filenames")
@@ -386,7 +433,8 @@ def _image_path(frame: dict, json_path: Path, index: int):
 
 
 def _parse_frame(frame: dict, meta: dict, json_path: Path, index: int):
-    """Validate one frame's pose; ``(image, to_world (Mitsuba), camera keys, (map, scale, is distance), where)``."""
+    """Validate one frame (``index``: its place in the file's ``frames``); ``(image, to_world (Mitsuba),
+    camera keys, (map, scale, is distance), where)``."""
     image = _image_path(frame, json_path, index)
     where = f"{json_path}: frame {index} ({frame.get('file_path')})"
     if "transform_matrix" not in frame:
@@ -395,6 +443,9 @@ def _parse_frame(frame: dict, meta: dict, json_path: Path, index: int):
     keys = {k: frame.get(k, meta.get(k)) for k in CAMERA_KEYS}
     depth, scale = None, 1.0
     # distance_file_path: our own export (EXR channel Z, distance from the optical centre).
+    for key in ("distance_file_path", "depth_file_path"):
+        if frame.get(key) is not None and not isinstance(frame[key], str):
+            raise UserError(f"{where}: {key} must be a file name, got {frame[key]!r}")
     is_distance = bool(frame.get("distance_file_path"))
     map_path = frame.get("distance_file_path") or frame.get("depth_file_path")
     if map_path:
@@ -405,7 +456,10 @@ def _parse_frame(frame: dict, meta: dict, json_path: Path, index: int):
         else:
             # nerfstudio's default: 16-bit PNG depth in millimetres; float files are in scene units.
             default = 1.0 if depth.suffix.lower() in (".exr", ".npy") else 1e-3
-            scale = float(meta.get("depth_unit_scale_factor", default))
+            scale = meta.get("depth_unit_scale_factor", default)
+            if not (is_number(scale, finite=True) and scale > 0):
+                raise UserError(f"{json_path}: depth_unit_scale_factor must be a positive number, got {scale!r}")
+            scale = float(scale)
     return image, to_world, keys, (depth, scale, is_distance), where
 
 
@@ -426,12 +480,22 @@ def mitsuba_to_opengl(to_world) -> np.ndarray:
 
 def _full_size(parsed) -> tuple[int, int]:
     """Full-resolution (width, height) of a parsed frame: the JSON's ``w``/``h``, else the image header."""
-    image, _, keys, *_ = parsed
+    image, _, keys, _, where = parsed
+    for name in ("w", "h"):
+        value = keys[name]
+        if value is not None and not (is_number(value, finite=True) and float(value).is_integer() and value > 0):
+            raise UserError(f"{where}: {name} must be a whole number of pixels, got {value!r}")
     if keys["w"] is not None and keys["h"] is not None:
         return int(keys["w"]), int(keys["h"])
     if image.suffix.lower() == ".exr":
-        rgb = read_exr(image)
-        return next(iter(rgb.values())).shape[1::-1]
+        import OpenEXR
+
+        try:
+            with OpenEXR.File(str(image), header_only=True) as f:
+                lo, hi = f.header()["dataWindow"]
+        except Exception as exc:  # noqa: BLE001 (OpenEXR raises RuntimeError, among others)
+            raise UserError(f"cannot read image {image}: {first_line(exc)}") from None
+        return int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
     from PIL import Image
 
     try:
@@ -441,27 +505,40 @@ def _full_size(parsed) -> tuple[int, int]:
         raise UserError(f"cannot read image {image}: {exc}") from None
 
 
-def _make_frame(parsed, downscale: int) -> Frame:
-    """Camera and crop window of one frame, at ``1 / downscale`` resolution."""
-    image, to_world, keys, depth, where = parsed
-    w, h = _full_size(parsed)
-    fx, fy, cx, cy = _intrinsics(keys, w, h, where)
-    # Our camera model has its principal point at the image centre: crop the
-    # largest window centred on (cx, cy), then trim to multiples of the factor.
-    x0, wc = _centred_window(cx, w, downscale)
-    y0, hc = _centred_window(cy, h, downscale)
+def _window(parsed, full_size, downscale: int, size=None) -> tuple:
+    """``(x0, y0, width, height)``: the crop window in full-resolution pixels of a
+    frame whose image is ``full_size`` (width, height).
+
+    Our camera model has its principal point at the image centre: the window
+    is the largest one centred on (cx, cy), at most ``size`` (width, height),
+    trimmed to multiples of the factor."""
+    _, _, keys, _, where = parsed
+    w, h = full_size
+    _, _, cx, cy = _intrinsics(keys, w, h, where)
+    x0, wc = _centred_window(cx, w, downscale, size and size[0])
+    y0, hc = _centred_window(cy, h, downscale, size and size[1])
     if wc < downscale or hc < downscale:
         raise UserError(f"{where}: the image ({w}x{h}) is too small for downscale {downscale}")
+    return x0, y0, wc, hc
+
+
+def _make_frame(parsed, full_size, downscale: int, size=None) -> Frame:
+    """Camera and crop window (at most ``size``) of one frame, at ``1 / downscale`` resolution."""
+    image, to_world, keys, depth, where = parsed
+    w, h = full_size
+    fx, _, _, _ = _intrinsics(keys, w, h, where)
+    x0, y0, wc, hc = _window(parsed, full_size, downscale, size)
     fov = math.degrees(2.0 * math.atan(0.5 * wc / fx))
     cam = Camera(to_world, fov, wc // downscale, hc // downscale)
     return Frame(image, cam, (x0, y0, wc, hc), downscale, (w, h), *depth)
 
 
-def _centred_window(c: float, size: int, f: int) -> tuple[int, int]:
-    """``(start, length)``: the widest pixel window centred on ``c`` (to half a pixel), length a multiple of ``f``."""
+def _centred_window(c: float, size: int, f: int, most: int | None = None) -> tuple[int, int]:
+    """``(start, length)``: the widest pixel window centred on ``c`` (to half a pixel), length a multiple
+    of ``f`` and at most ``most``."""
     centre = int(round(c * 2)) / 2  # centres fall on pixel edges or centres only
     half = min(centre, size - centre)
-    length = int(2 * half) // f * f
+    length = min(int(2 * half), most or size) // f * f
     start = int(round(centre - length / 2))
     return max(start, 0), length
 
@@ -537,7 +614,8 @@ def _bounds_from_keys(metas):
                 b = np.asarray(box, dtype=np.float64)
             except (TypeError, ValueError):
                 b = np.zeros(0)
-            if b.shape != (2, 3) or not np.all(np.isfinite(b)) or not np.all(b[1] > b[0]):
+            # A flat box (a planar scene's, as a run records it) is a box: the fields give it depth.
+            if not (b.shape == (2, 3) and np.all(np.isfinite(b)) and np.all(b[1] >= b[0]) and np.any(b[1] > b[0])):
                 raise UserError(f"{jf}: '{key}' must be [[xmin,ymin,zmin],[xmax,ymax,zmax]], got {box}")
             return b[0], b[1]
     return None

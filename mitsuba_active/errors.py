@@ -22,3 +22,9 @@ class SetupError(UserError, ImportError):
 class FolderInUse(UserError):
     """A run folder that another run is writing (in this process or another):
     raised before anything in it is touched, so nothing of the other run's is undone."""
+
+
+def first_line(exc: BaseException) -> str:
+    """The first line of an exception's message (its type's name when it has none):
+    what a library reports about a file it cannot read may run over many lines."""
+    return (str(exc).splitlines() or [type(exc).__name__])[0]

@@ -853,3 +853,19 @@ def test_mitsuba_warnings_are_plain_lines_on_stderr(tmp_path):
         code, text = run_cli(*command)
     assert code == 0 and "mitsuba-active: warning: [Sphere] 'to_world' transform" in text, text
     assert state() == before
+
+
+def test_a_warning_stays_one_line(tmp_path):
+    """A dataset frame whose missing image has a line break in its name: the warning escapes it."""
+    from tests.test_datasets import write_dataset
+
+    write_dataset(tmp_path / "ds", n=10, frame_extra={1: {"file_path": "images/gone\nmissing.png"}})
+    command = ["plan", str(tmp_path / "ds"), "--planner", "even", "--budget", "2", "--initial-views", "1",
+               "--eval-views", "2", "--eval-steps", "5", "--candidates", "4", "--heldout", "1", "--quiet",
+               "--out", str(tmp_path / "run")]
+    proc = subprocess.run([sys.executable, "-m", "mitsuba_active", *command], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    warned = [ln for ln in proc.stderr.splitlines() if "warning:" in ln]
+    assert len(warned) == 1 and warned[0].endswith("skipped 1 of 10 frames whose image file is missing "
+                                                   f"(e.g. {tmp_path / 'ds' / 'images'}/gone\\nmissing.png)"), \
+        proc.stderr

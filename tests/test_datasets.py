@@ -158,6 +158,48 @@ def test_rgba_is_composited_on_white_or_black(tmp_path):
     assert np.allclose(black[..., 0], a, atol=1e-5) and np.allclose(black[..., 1], 0.0, atol=1e-6)
 
 
+@pytest.mark.parametrize("channels", ["RGBA", "Y"])
+def test_exr_images_with_alpha_or_grey(tmp_path, channels):
+    """EXR colour is linear with premultiplied alpha (Blender's RGBA output): composited in linear light."""
+    from mitsuba_active.imageio_utils import linear_to_srgb, write_exr
+
+    write_dataset(tmp_path, n=3, form="blender", size=(4, 4))
+    a = np.linspace(0, 1, 16, dtype=np.float32).reshape(4, 4)
+    for k in range(3):
+        (tmp_path / "images" / f"f_{k:03d}.png").unlink()
+        data = ({"RGB": np.stack([0.5 * a, 0 * a, 0 * a], -1), "A": a} if channels == "RGBA"
+                else {"Y": np.full((4, 4), 0.25, np.float32)})
+        write_exr(tmp_path / "images" / f"f_{k:03d}.exr", data)
+    for white in (True, False):
+        rgb = DatasetSource.from_path(tmp_path / "transforms_train.json", white_background=white).candidate_view(0).rgb
+        if channels == "Y":
+            expected = np.broadcast_to(linear_to_srgb(np.float32(0.25)), (4, 4, 3))
+        else:
+            bg = (1.0 - a) if white else 0.0 * a
+            expected = linear_to_srgb(np.stack([0.5 * a + bg, bg, bg], -1))
+        assert np.allclose(rgb, expected, atol=1e-5)
+
+
+def test_a_cmyk_jpeg_reads_as_its_rgb(tmp_path):
+    from PIL import Image
+
+    write_dataset(tmp_path, n=3, form="blender", size=(4, 4))
+    cmyk = Image.new("CMYK", (4, 4), (40, 90, 10, 60))
+    for k in range(3):
+        (tmp_path / "images" / f"f_{k:03d}.png").unlink()
+        cmyk.save(tmp_path / "images" / f"f_{k:03d}.jpg")
+    rgb = DatasetSource.from_path(tmp_path / "transforms_train.json").candidate_view(0).rgb
+    expected = np.asarray(Image.open(tmp_path / "images" / "f_000.jpg").convert("RGB"), np.float32) / 255
+    assert np.allclose(rgb, expected, atol=1e-6) and expected.max() < 0.8  # not taken for RGBA on white
+
+
+def test_a_damaged_npy_depth_map_is_one_line(tmp_path):
+    np.save(tmp_path / "d.npy", np.array([{"a": 1}], dtype=object))
+    write_dataset(tmp_path, n=3, frame_extra={0: {"depth_file_path": "d.npy"}})
+    with pytest.raises(UserError, match="cannot read depth map .*d.npy"):
+        DatasetSource.from_path(tmp_path).heldout_view(0)
+
+
 def test_missing_frames_are_skipped_with_one_warning(tmp_path):
     path = write_dataset(tmp_path, n=10, form="blender", missing=(1, 4, 9))
     with pytest.warns(UserWarning, match="skipped 3 of 10 frames") as record:
@@ -197,6 +239,15 @@ def test_instant_ngp_off_centre_principal_point_is_cropped(tmp_path):
     j, i = np.meshgrid(np.arange(4, 16) + 0.5, np.arange(0, 10) + 0.5)
     d = np.stack([(j - 10.0) / 10, -(i - 5.0) / 10, -np.ones_like(j)], -1).reshape(-1, 3) @ m[:3, :3].T
     assert np.allclose(camera_rays(cam)[1], d / np.linalg.norm(d, axis=1, keepdims=True), atol=1e-5)
+
+
+def test_per_frame_principal_points_a_fraction_apart_share_one_window(tmp_path):
+    write_dataset(tmp_path, n=9, size=(32, 32),
+                  frame_extra={k: {"cx": 16.0 if k % 2 else 15.4, "cy": 16.0} for k in range(9)})
+    src = DatasetSource.from_path(tmp_path)
+    sizes = {(c.width, c.height) for c in src.candidates + src.heldout}
+    assert sizes == {(31, 32)}, sizes  # the narrower window (centred on 15.5) for every frame
+    ActiveViewEnv(src, budget=2)
 
 
 def test_split_keys_and_nerfstudio_filenames(tmp_path):
@@ -241,6 +292,13 @@ def test_aabb_key_sets_bounds(tmp_path):
     write_dataset(tmp_path, n=4, extra={"aabb": [[-1, -2, -3], [1, 2, 3]]})
     src = DatasetSource.from_path(tmp_path)
     assert np.allclose(src.bbox_min, [-1, -2, -3]) and np.allclose(src.bbox_max, [1, 2, 3])
+
+
+def test_a_flat_aabb_is_a_box(tmp_path):
+    """A planar scene's run records a flat box, and its export writes it as the aabb."""
+    write_dataset(tmp_path, n=3, extra={"aabb": [[-1, 0, -1], [1, 0, 1]]})
+    src = DatasetSource.from_path(tmp_path)
+    assert np.allclose(src.bbox_min, [-1, 0, -1]) and np.allclose(src.bbox_max, [1, 0, 1])
 
 
 def test_estimated_bounds_centre_on_the_object():
@@ -343,12 +401,52 @@ def _nerfstudio_train_only(root):
     write_dataset(root, n=4, extra={"train_filenames": ["images/f_000.png", "images/f_001.png"]})
 
 
+def _wordy_width(root):
+    write_dataset(root, n=3, extra={"w": "abc"})
+
+
+def _wordy_depth_scale(root):
+    write_dataset(root, n=3, extra={"depth_unit_scale_factor": "mm"},
+                  frame_extra={1: {"depth_file_path": "images/f_000.png"}})
+
+
+def _numbered_depth_path(root):
+    write_dataset(root, n=3, frame_extra={1: {"depth_file_path": 5}})
+
+
+def _numbered_train_names(root):
+    write_dataset(root, n=3, extra={"train_filenames": 5, "test_filenames": ["images/f_000.png"]})
+
+
+def _latin1_json(root):
+    write_dataset(root, n=3)
+    p = root / "transforms.json"
+    p.write_bytes(p.read_bytes().replace(b'"frames"', '"caf\u00e9": 1, "frames"'.encode("latin-1")))
+
+
+def _damaged_exr_image(root):
+    write_dataset(root, n=3, form="blender")  # no w and h: the image's size is read from its header
+    for k in range(3):
+        (root / "images" / f"f_{k:03d}.png").unlink()
+        (root / "images" / f"f_{k:03d}.exr").write_bytes(b"not an exr")
+
+
+def _third_frame_without_path(root):
+    write_dataset(root, n=5, frame_extra={3: {"file_path": None}})
+
+
 @pytest.mark.parametrize("make,message", [
     (_bad_json, "not valid JSON"), (_no_frames, "no frames"), (_no_focal, "camera_angle_x or fl_x"),
     (_all_missing, "none of the dataset's image files"), (_bad_matrix, "must be 4x4"),
     (_distorted, "distortion"), (_non_square, "non-square"), (_bad_aabb, "aabb"),
     (_wordy_focal, "camera_angle_x must be a number"), (_flat_focal, "camera_angle_x must be in \\(0, pi\\) radians, got 0"),
     (_no_test_frames, "no held-out frames"), (_nerfstudio_train_only, "no held-out frames"),
+    (_wordy_width, "w must be a whole number of pixels, got 'abc'"),
+    (_wordy_depth_scale, "depth_unit_scale_factor must be a positive number, got 'mm'"),
+    (_numbered_depth_path, "depth_file_path must be a file name, got 5"),
+    (_numbered_train_names, "'train_filenames' must be a list of file names, got 5"),
+    (_latin1_json, "not valid JSON \\(not UTF-8 text\\)"), (_damaged_exr_image, r"cannot read image .*f_00\d.exr"),
+    (_third_frame_without_path, "frame 3 has no 'file_path'"),  # its place among the file's frames
 ])
 def test_malformed_datasets_fail_with_one_line(tmp_path, make, message):
     make(tmp_path)

@@ -9,6 +9,7 @@ scene's bounds are written as ``aabb`` (as :mod:`.datasets` reads them back).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import re
@@ -18,8 +19,9 @@ from pathlib import Path
 
 from .cameras import Camera
 from .datasets import mitsuba_to_opengl
-from .errors import UserError
-from .imageio_utils import atomic_write
+from .errors import UserError, first_line
+from .imageio_utils import atomic_write, new_entries, remove_new
+from .interrupts import interrupts_deferred
 from .run import read_record
 
 
@@ -53,27 +55,50 @@ def export_transforms(run_dir, out_dir=None) -> Path:
                         f"for views {missing}")
     _check_views(run_dir / "views", cams, distances)
     ref = cams[0]
-    k = ref.intrinsics()
     # Cameras of their own (rig xml) may differ in field of view: then every
     # frame carries its intrinsics, which nerfstudio reads before the top level's.
     per_frame = any(cam.fov != ref.fov for cam in cams)
     frames = []
-    (out / "images").mkdir(parents=True, exist_ok=True)
-    if distances:
-        (out / "distance").mkdir(parents=True, exist_ok=True)
-    for n, (cam, index) in enumerate(zip(cams, rec["captured"])):
-        img, dist = f"images/view_{n:03d}.png", f"distance/view_{n:03d}.exr"
-        shutil.copyfile(run_dir / "views" / f"view_{n:03d}.png", out / img)
-        frame = {"file_path": img}
-        if distances:
-            shutil.copyfile(run_dir / "views" / f"view_{n:03d}.exr", out / dist)
-            frame["distance_file_path"] = dist
-        if per_frame:
-            kc = cam.intrinsics()
-            frame.update(camera_angle_x=math.radians(cam.fov), fl_x=kc[0, 0], fl_y=kc[1, 1], cx=kc[0, 2],
-                         cy=kc[1, 2])
-        frames.append({**frame, "candidate": int(index),
-                       "transform_matrix": mitsuba_to_opengl(cam.to_world).tolist()})
+    # Every file goes to a temporary name first and all are renamed at the end, with
+    # Ctrl-C held back: a failed export (a full disk) leaves the earlier one whole.
+    top, before = new_entries(out)
+    try:
+        with contextlib.ExitStack() as staged:
+            def stage(name: str) -> Path:
+                return staged.enter_context(atomic_write(out / name))
+
+            for n, (cam, index) in enumerate(zip(cams, rec["captured"])):
+                img, dist = f"images/view_{n:03d}.png", f"distance/view_{n:03d}.exr"
+                shutil.copyfile(run_dir / "views" / f"view_{n:03d}.png", stage(img))
+                frame = {"file_path": img}
+                if distances:
+                    shutil.copyfile(run_dir / "views" / f"view_{n:03d}.exr", stage(dist))
+                    frame["distance_file_path"] = dist
+                if per_frame:
+                    kc = cam.intrinsics()
+                    frame.update(camera_angle_x=math.radians(cam.fov), fl_x=kc[0, 0], fl_y=kc[1, 1], cx=kc[0, 2],
+                                 cy=kc[1, 2])
+                frames.append({**frame, "candidate": int(index),
+                               "transform_matrix": mitsuba_to_opengl(cam.to_world).tolist()})
+            path = out / "transforms.json"
+            earlier = _exported_files(path)
+            stage("transforms.json").write_text(json.dumps(_transforms(rec, ref, distances, frames), indent=1))
+            renames = staged.pop_all()
+        with interrupts_deferred():
+            renames.close()
+    except BaseException:
+        remove_new(out, top, before)  # folders a first export made
+        raise
+    # An export over an earlier one: its frames that this one does not have go.
+    now = {f[key] for f in frames for key in ("file_path", "distance_file_path") if key in f}
+    for name in sorted(earlier - now):
+        (out / name).unlink(missing_ok=True)
+    return path
+
+
+def _transforms(rec: dict, ref: Camera, distances: bool, frames: list) -> dict:
+    """The content of transforms.json: the shared camera (``ref``'s), the scene's bounds, the frames."""
+    k = ref.intrinsics()
     data = {"camera_model": "OPENCV", "camera_angle_x": math.radians(ref.fov),
             "fl_x": k[0, 0], "fl_y": k[1, 1], "cx": k[0, 2], "cy": k[1, 2], "w": ref.width, "h": ref.height,
             "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0}
@@ -83,15 +108,7 @@ def export_transforms(run_dir, out_dir=None) -> Path:
         data["distance_note"] = ("distance_file_path: EXR channel Z, distance from the optical centre in scene "
                                  "units along each pixel-centre ray (not depth); 0 where nothing is hit")
     data["frames"] = frames
-    path = out / "transforms.json"
-    earlier = _exported_files(path)
-    with atomic_write(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=1))
-    # An export over an earlier one: its frames that this one does not have go.
-    now = {f[key] for f in frames for key in ("file_path", "distance_file_path") if key in f}
-    for name in sorted(earlier - now):
-        (out / name).unlink(missing_ok=True)
-    return path
+    return data
 
 
 def _check_views(views_dir: Path, cams: list[Camera], distances: bool) -> None:
@@ -109,8 +126,7 @@ def _check_views(views_dir: Path, cams: list[Camera], distances: bool) -> None:
             try:
                 size = size_of(path)
             except Exception as exc:  # noqa: BLE001 (image readers raise many kinds)
-                first = (str(exc).splitlines() or [type(exc).__name__])[0]
-                raise UserError(f"{path} is damaged (it does not read as an image: {first})") from None
+                raise UserError(f"{path} is damaged (it does not read as an image: {first_line(exc)})") from None
             if tuple(size) != (cam.height, cam.width):
                 raise UserError(f"{path} is damaged: {size[1]}x{size[0]} pixels where its camera has "
                                 f"{cam.width}x{cam.height}")

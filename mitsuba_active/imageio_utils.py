@@ -35,6 +35,12 @@ def atomic_write(path, suffix=""):
     try:
         yield tmp
         os.replace(tmp, path)
+    except OSError as exc:  # a full disk: name the output, not its temporary name
+        if exc.filename in (tmp, str(tmp)):
+            exc.filename = str(path)
+        if exc.filename2 in (tmp, str(tmp)):  # shutil's copies name the source first
+            exc.filename2 = str(path)
+        raise
     finally:
         if os.path.lexists(tmp):
             os.unlink(tmp)

@@ -215,6 +215,35 @@ def test_export_round_trips_poses(source, tmp_path):
     assert (tmp_path / "ds" / "notes.txt").read_text() == "mine"
 
 
+def test_a_failed_export_leaves_the_earlier_one_whole(source, tmp_path, monkeypatch):
+    import errno
+    import shutil
+
+    _run(source, tmp_path / "r", planner="coverage")
+    export_transforms(tmp_path / "r", tmp_path / "ds")
+    earlier = {p: p.read_bytes() for p in (tmp_path / "ds").rglob("*") if p.is_file()}
+    views = tmp_path / "r" / "views"
+    (views / "view_000.png").write_bytes((views / "view_001.png").read_bytes())  # the next export differs
+    copyfile, copied = shutil.copyfile, []
+
+    def full_disk(src, dst, **kw):
+        if len(copied) == 3:
+            raise OSError(errno.ENOSPC, "No space left on device", str(src), None, str(dst))
+        copied.append(dst)
+        return copyfile(src, dst, **kw)
+
+    monkeypatch.setattr(shutil, "copyfile", full_disk)
+    with pytest.raises(OSError) as err:
+        export_transforms(tmp_path / "r", tmp_path / "ds")
+    assert err.value.filename2 == str(tmp_path / "ds" / "distance" / "view_001.exr")  # the 4th copy: its final name
+    assert {p: p.read_bytes() for p in (tmp_path / "ds").rglob("*") if p.is_file()} == earlier
+    # A first export that fails leaves no folder.
+    copied.clear()
+    with pytest.raises(OSError):
+        export_transforms(tmp_path / "r", tmp_path / "new" / "ds")
+    assert not (tmp_path / "new").exists()
+
+
 def test_export_keeps_each_cameras_field_of_view(tmp_path):
     from mitsuba_active.datasets import DatasetSource
 

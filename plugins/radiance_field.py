@@ -25,7 +25,8 @@ Outputs, per sample (the film averages them over a pixel's samples):
     from the sensor's optical centre, given a hit (faint density gives its
     depth too: weigh it by the opacity); 0 where a ray misses the field's box;
     ``distance_var.Y``: its variance over members;
-    ``opacity.Y``: mean accumulated opacity in [0, 1].
+    ``opacity.Y``: mean accumulated opacity in [0, 1] (an ``rgba`` film's
+    alpha is 1 everywhere: Mitsuba's alpha marks valid samples, and every ray is one).
 
 Mitsuba starts camera rays on the near-clip plane; the integrator moves each
 origin back along its ray onto the plane of the sensor's centre (for a

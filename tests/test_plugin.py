@@ -32,13 +32,13 @@ def field_path(tmp_path_factory):
     return path
 
 
-def pixel_centre_sensor(cam: Camera, spp=1, near=0.5):
+def pixel_centre_sensor(cam: Camera, spp=1, near=0.5, pixel_format="rgb"):
     """A perspective sensor sampling pixel centres only (stratified, no jitter, box filter)."""
     return mi.load_dict({
         "type": "perspective", "fov": cam.fov, "fov_axis": "x", "near_clip": near,
         "to_world": mi.ScalarTransform4f(cam.to_world.tolist()),
         "film": {"type": "hdrfilm", "width": cam.width, "height": cam.height,
-                 "rfilter": {"type": "box"}, "pixel_format": "rgb"},
+                 "rfilter": {"type": "box"}, "pixel_format": pixel_format},
         "sampler": {"type": "stratified", "sample_count": spp, "jitter": False},
     })
 
@@ -82,6 +82,14 @@ def test_any_sensor_through_plain_mi_render(field_path, camera):
     img = np.array(mi.render(scene, sensor=camera.with_resolution(8, 6).sensor(spp=4), spp=4))
     assert img.shape == (6, 8, 9) and np.all(np.isfinite(img))
     assert img[..., :3].min() >= 0 and img[..., :3].max() <= 1 and img[..., 8].max() <= 1 + 1e-6
+
+
+def test_an_rgba_films_alpha_is_one_and_opacity_is_the_coverage(field_path, camera):
+    _, img = render(field_path, pixel_centre_sensor(camera, pixel_format="rgba"))
+    assert img.shape == (H, W, 4 + len(AOV_NAMES))
+    assert np.allclose(img[..., 3], 1.0)  # as documented: Mitsuba's alpha marks valid samples
+    opacity = Ensemble.load(field_path).predict(*camera_rays(camera))["opacity"]
+    assert np.allclose(img[..., -1].ravel(), opacity, atol=1e-5) and opacity.min() < 0.9
 
 
 def test_missing_filename_is_refused():

@@ -21,7 +21,7 @@ import mitsuba as mi
 from mitsuba_active.env import ActiveViewEnv, SceneSource
 from mitsuba_active.field import Ensemble, FieldConfig
 from mitsuba_active.metrics import psnr
-from mitsuba_active.planners import PlanningState, make_planner
+from mitsuba_active.planners import PlanningState, make_planner, planner_rng
 from mitsuba_active.run import PLANNER_INIT_SCALE, SPARSE_VIEW_FIELD, predict_view, sparse_candidate_rays, train_on
 
 
@@ -43,10 +43,12 @@ def scene_dict() -> dict:
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--planner", default="rfe", help="a registered planner or FILE.py:CLASS [rfe]")
-    ap.add_argument("--budget", type=int, default=10, help="views captured in total [10]")
+    ap.add_argument("--budget", type=int, default=10, help="views captured in total, at least 2 [10]")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--tiny", action="store_true", help="tiny settings (seconds)")
     args = ap.parse_args()
+    if args.budget < 2:
+        ap.error("--budget must be at least 2: the loop starts from 2 random views")
     tiny = args.tiny
 
     source = SceneSource.from_mitsuba(scene_dict(), name="spheres", n_candidates=12 if tiny else 60,
@@ -61,13 +63,14 @@ def main():
     env = ActiveViewEnv(source, budget=budget)
     obs, info = env.reset(seed=args.seed, options={"initial_views": 2})
     planner = make_planner(args.planner)
-    state = PlanningState(source.candidates, info["captured"], rng=np.random.default_rng(args.seed))
+    # The planner's own random stream: not the one that drew the initial views.
+    state = PlanningState(source.candidates, info["captured"], rng=planner_rng(args.seed))
     if planner.needs_ensemble:
         # The field the planner scores with: an ensemble (or, for `variational`, one stochastic field).
         state.ensemble = planner.make_field(source.bbox_min, source.bbox_max, planner.ensemble_size(2),
                                             FieldConfig(**field, init_scale=PLANNER_INIT_SCALE), args.seed)
         # A fixed sparse set of rays per candidate: the planner scores candidates over these.
-        state.candidate_rays = sparse_candidate_rays(source.candidates, 32 if tiny else 256, args.seed)
+        state.candidate_rays = sparse_candidate_rays(source.candidates, 32 if tiny else 256, args.seed + 1)
         train_on(state.ensemble, env.views, steps_per_view * len(env.views))
     while not env.terminated:
         picks, scores = planner.checked_select(state, 1)

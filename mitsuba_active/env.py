@@ -12,6 +12,7 @@ evaluation protocol (:mod:`mitsuba_active.run`), not by the environment.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Protocol
 
 import gymnasium as gym
@@ -58,7 +59,7 @@ class SceneSource:
     def __init__(self, scene, candidates, heldout, spp=64, cache_dir=None):
         check_disjoint(candidates, heldout)
         self.scene = scene
-        self.name = scene.path.stem
+        self.name = scene.name
         self.candidates, self.heldout = list(candidates), list(heldout)
         self.bbox_min, self.bbox_max = scene.bbox_min, scene.bbox_max
         self.groundtruth = GroundTruth(scene, spp=spp, cache_dir=False if scene.content_hash is None else cache_dir)
@@ -152,7 +153,12 @@ class ActiveViewEnv(gym.Env):
     # -- gymnasium API -------------------------------------------------------
     def reset(self, *, seed=None, options=None):
         """Start over; ``options={"initial_views": k}`` captures k distinct random candidates first."""
-        super().reset(seed=seed)
+        if seed is not None and not (is_whole(seed) and seed >= 0):
+            raise UserError(f"the seed must be a whole number of at least 0 (or None), got {seed!r}")
+        super().reset(seed=None if seed is None else int(seed))  # gymnasium takes Python ints only
+        if options is not None and not isinstance(options, Mapping):
+            raise UserError("reset options must be a dict such as {'initial_views': 2}, "
+                            f"not {type(options).__name__}")
         unknown = sorted(set(options or {}) - {"initial_views"}, key=str)
         if unknown:
             raise UserError(f"unknown reset option {', '.join(map(repr, unknown))}; the one option is 'initial_views'")
@@ -211,6 +217,12 @@ class ActiveViewEnv(gym.Env):
 
     def restore(self, captured: list[int]) -> None:
         """Start over with exactly these candidates captured, in order (to resume a run)."""
+        bad = [i for i in captured if isinstance(i, (bool, np.bool_)) or not self.action_space.contains(i)]
+        if bad:
+            raise UserError(f"cannot restore captured views {bad!r}: expected candidate indices (whole numbers) "
+                            f"in [0, {self.action_space.n})")
+        if len(captured) > self.budget:
+            raise UserError(f"cannot restore {len(captured)} captured views: more than the budget ({self.budget})")
         self.captured, self.views = [], []
         for i in captured:
             self._capture(int(i))

@@ -38,7 +38,8 @@ from .imageio_utils import (atomic_write, colorize, folder_lock, new_entries, re
                             write_png)
 from .metrics import distance_error, psnr, ssim
 from .planners import PlanningState, make_planner
-from .planners.base import is_planner_file, planner_digest, planner_folder, planner_label, resolve_reference
+from .planners.base import (is_planner_file, planner_digest, planner_folder, planner_label, planner_rng,
+                             resolve_reference)
 
 RUN_FORMAT = 1
 #: Most sparse rays scored per candidate view (images have at most 4096x4096
@@ -99,6 +100,13 @@ class RunConfig:
             self.scene = os.fspath(self.scene)
         if isinstance(self.planner, str):  # a planner file is the same file from any folder
             self.planner = resolve_reference(self.planner)
+        # numpy scalars (a seed from np.arange) as Python numbers: gymnasium takes Python ints only.
+        for name in self.WHOLE + self.NUMBERS + ("downscale",):
+            value = getattr(self, name)
+            if isinstance(value, np.generic) and (is_whole(value) or is_number(value)):
+                setattr(self, name, value.item())
+        if isinstance(self.eval_views, (list, tuple)):
+            self.eval_views = [v.item() if isinstance(v, np.generic) and is_whole(v) else v for v in self.eval_views]
 
     #: Settings that are whole numbers, and those that are numbers (None: unset).
     WHOLE = ("budget", "initial_views", "ensemble", "batch", "seed", "resolution", "candidates", "heldout",
@@ -459,10 +467,16 @@ def make_ensemble(source, cfg: RunConfig, n_members: int, seed: int, planner: bo
 
 
 def train_on(ens, views: list[View], steps: int, progress: bool = False, reset_occupancy: bool = True) -> np.ndarray:
-    """Set the rays of ``views`` on ``ens`` and train it ``steps`` steps; returns the (steps,) losses."""
+    """Set the rays of ``views`` on ``ens`` and train it ``steps`` steps; returns the (steps,) losses.
+
+    Without views there is nothing to set: 0 steps do nothing, more are a UserError."""
+    if not views:
+        if is_whole(steps) and steps == 0:
+            return np.zeros(0)
+        raise UserError(f"train_on: no views to train on ({steps!r} steps asked for)")
     r = view_rays(views)
     ens.set_rays(r["origins"], r["directions"], r["rgb"], r["distance"], r["hit"], reset_occupancy)
-    return ens.train(steps, progress=progress) if steps > 0 else np.zeros(0)
+    return ens.train(steps, progress=progress and steps != 0)
 
 
 def predict_view(ens, camera) -> dict:
@@ -510,16 +524,6 @@ def _mean_or_none(values) -> float | None:
 # ---------------------------------------------------------------------------
 # The run
 # ---------------------------------------------------------------------------
-
-def planner_rng(seed: int) -> np.random.Generator:
-    """The planner's random stream of a run with this seed.
-
-    ``env.reset(seed=seed)`` draws the initial views from the stream of
-    ``default_rng(seed)``. The planner must not replay it: ``random`` would
-    then re-pick an initial view in about half the runs, wasting a view.
-    """
-    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(1,)))
-
 
 def source_differences(source, cfg: RunConfig) -> list[str]:
     """Environment settings of ``cfg`` that a scene source was not made with,

@@ -329,6 +329,11 @@ class Scene:
     floor: bool = False
 
     @property
+    def name(self) -> str:
+        """The XML file's stem, or the name a scene built in Python was given (kept whole: it names no file)."""
+        return str(self.path) if self.content_hash is None else self.path.stem
+
+    @property
     def center(self) -> np.ndarray:
         return 0.5 * (self.bbox_min + self.bbox_max)
 

@@ -72,6 +72,7 @@ def test_impossible_budgets(source):
     ({"initial_view": 2}, "unknown reset option 'initial_view'"),  # a typo would silently give 1 view
     ({"initial_views": 1.5}, r"initial views \(1.5\) must be a whole number"),
     ({"initial_views": None}, r"initial views \(None\) must be a whole number"),
+    (["initial_views"], r"reset options must be a dict .* not list"),
 ])
 def test_reset_options_are_checked(source, options, message):
     with pytest.raises(UserError, match=message):
@@ -164,6 +165,8 @@ def test_a_scene_built_in_python_is_a_view_source(tmp_path, monkeypatch):
     for scene in (BALL_DICT, mi.load_dict(BALL_DICT)):
         source = SceneSource.from_mitsuba(scene, name="ball", **kw)
         assert source.name == "ball" and source.scene.content_hash is None
+        # A name names no file: it is kept whole.
+        assert SceneSource.from_mitsuba(scene, name="lab/ball_r0.3", **kw).name == "lab/ball_r0.3"
         assert np.allclose(source.bbox_min, from_file.bbox_min) and np.allclose(source.bbox_max, from_file.bbox_max)
         obs, info = ActiveViewEnv(source, budget=2).reset(seed=0, options={"initial_views": 1})
         view = from_file.candidate_view(info["captured"][0])
@@ -222,3 +225,25 @@ def test_actions_that_are_no_candidate_index_are_named_as_given(source, action):
     env.reset(seed=0)
     with pytest.raises(UserError, match=f"invalid action {re.escape(repr(action))}; expected a candidate index"):
         env.step(action)
+
+
+@pytest.mark.parametrize("captured, message", [
+    ([-1, 2], r"cannot restore captured views \[-1\]: expected candidate indices .* in \[0, 10\)"),
+    ([2.7], r"cannot restore captured views \[2.7\]"), ([99], r"\[99\]"),
+    ([1, 2, 3, 4, 5], "cannot restore 5 captured views: more than the budget \\(4\\)"),
+])
+def test_restore_checks_what_it_restores(source, captured, message):
+    env = ActiveViewEnv(source, budget=4)
+    with pytest.raises(UserError, match=message):
+        env.restore(captured)
+    env.restore([np.int64(3), 3])  # numpy indices and repeats are captures
+    assert env.captured == [3, 3] and all(type(i) is int for i in env.captured)
+
+
+def test_reset_takes_numpy_seeds_and_refuses_others(source):
+    env = ActiveViewEnv(source, budget=3)
+    assert env.reset(seed=np.int64(5), options={"initial_views": 2})[1]["captured"] == \
+        env.reset(seed=5, options={"initial_views": 2})[1]["captured"]
+    for seed in (1.5, -1, "3"):
+        with pytest.raises(UserError, match="the seed must be a whole number of at least 0"):
+            env.reset(seed=seed)

@@ -125,6 +125,23 @@ def test_scoring_planners_say_what_the_state_lacks(name):
 def test_a_planning_state_without_a_generator_repeats_its_picks():
     picks = [make_planner(name).select(PlanningState(CANDS, [0]), 2)[0] for name in ("even", "random") for _ in "ab"]
     assert picks[0] == picks[1] and picks[2] == picks[3]
+    # Its stream is a run's planner stream (seed 0), not the one env.reset(seed=0) draws the initial views from.
+    from mitsuba_active.planners import planner_rng
+
+    state_draw = PlanningState(CANDS, [0]).rng.random(4)
+    assert np.array_equal(state_draw, planner_rng(0).random(4))
+    assert not np.allclose(state_draw, np.random.default_rng(0).random(4))
+
+
+def test_variational_refuses_a_plain_ensemble():
+    """A one-member ensemble has no spread to score: every candidate would score 0."""
+    from mitsuba_active.field import Ensemble, FieldConfig
+    from mitsuba_active.run import sparse_candidate_rays
+
+    ens = Ensemble([-1] * 3, [1] * 3, n_members=1, config=FieldConfig(n_levels=1, log2_table_size=10), seed=0)
+    state = PlanningState(CANDS, [0], ens, sparse_candidate_rays(CANDS, 4, 0))
+    with pytest.raises(UserError, match="the variational planner scores with a VariationalField .*, got Ensemble"):
+        make_planner("variational").select(state, 1)
 
 
 def test_greedy_top_and_planner_names_say_what_is_wrong():

@@ -9,6 +9,7 @@ from click.testing import CliRunner
 
 from mitsuba_active.cli import main
 from mitsuba_active.datasets import opengl_to_mitsuba
+from mitsuba_active.errors import UserError
 from mitsuba_active.export import export_transforms
 from mitsuba_active.run import Run, RunConfig
 from tests.conftest import tiny_source, two_sensor_xml
@@ -30,13 +31,24 @@ def _run(source, out, planner="rfe", **kw):
 
 def test_seeded_runs_are_reproducible(source, tmp_path):
     a = _run(source, tmp_path / "a", seed=5)
-    b = _run(source, tmp_path / "b", seed=5)
-    assert a["captured"] == b["captured"]
+    b = _run(source, tmp_path / "b", seed=np.int64(5))  # a seed from np.arange is the same seed
+    assert a["captured"] == b["captured"] and b["config"]["seed"] == 5
     # Multi-threaded gradient accumulation may reorder float additions: equal up to rounding.
     assert np.allclose([r["scores"] for r in a["rounds"]], [r["scores"] for r in b["rounds"]], rtol=1e-3)
     assert np.allclose([m["psnr"] for m in a["metrics"]], [m["psnr"] for m in b["metrics"]], atol=0.05)
     c = _run(source, tmp_path / "c", seed=6)
     assert c["captured"] != a["captured"] or c["metrics"] != a["metrics"]
+
+
+def test_train_on_without_views(source):
+    from mitsuba_active.run import make_ensemble, train_on
+
+    ens = make_ensemble(source, RunConfig(scene=str(source.scene.path), field=TINY["field"]), 1, seed=0)
+    assert train_on(ens, [], 0).shape == (0,)
+    with pytest.raises(UserError, match=r"train_on: no views to train on \(5 steps asked for\)"):
+        train_on(ens, [], 5)
+    with pytest.raises(UserError, match="steps must be a whole number"):
+        train_on(ens, [source.candidate_view(0)], -1)
 
 
 def test_random_picks_do_not_replay_the_initial_views(source, tmp_path):

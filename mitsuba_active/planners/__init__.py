@@ -11,12 +11,12 @@ A planner of your own is a :class:`Planner` subclass, named by reference
 
 from . import fisher, rfe, simple, variational  # noqa: F401  (register the planners)
 from .base import (REGISTRY, Planner, PlanningState, check_batch, greedy_top, make_planner, planner_folder,
-                   planner_label, register, unseen)
+                   planner_label, planner_rng, register, unseen)
 
 
 def names() -> list[str]:
     return sorted(REGISTRY)
 
 
-__all__ = ["Planner", "PlanningState", "make_planner", "names", "planner_label", "planner_folder", "register",
-           "greedy_top", "unseen", "check_batch"]
+__all__ = ["Planner", "PlanningState", "make_planner", "names", "planner_label", "planner_folder", "planner_rng",
+           "register", "greedy_top", "unseen", "check_batch"]

@@ -25,6 +25,16 @@ from ..errors import UserError
 from ..imageio_utils import folder_name
 
 
+def planner_rng(seed: int) -> np.random.Generator:
+    """The planner's random stream of a run with this seed.
+
+    ``env.reset(seed=seed)`` draws the initial views from the stream of
+    ``default_rng(seed)``. The planner must not replay it: ``random`` would
+    then re-pick an initial view in about half the runs, wasting a view.
+    """
+    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(1,)))
+
+
 @dataclass
 class PlanningState:
     """What a planner may look at when choosing views.
@@ -36,16 +46,17 @@ class PlanningState:
             for planners that do not need one.
         candidate_rays: ``(origins, directions)``, each (C, R, 3) float32: a
             fixed sparse set of R rays per candidate.
-        rng: the run's ``numpy.random.Generator``; when not given, one seeded
-            with 0, so that a state made anew gives the same picks (each call
-            moves one state's stream on, as a run's rounds do).
+        rng: the run's ``numpy.random.Generator``; when not given,
+            ``planner_rng(0)`` (that of a run with seed 0), so that a state
+            made anew gives the same picks (each call moves one state's
+            stream on, as a run's rounds do).
     """
 
     candidates: list
     captured: list
     ensemble: object = None
     candidate_rays: tuple | None = None
-    rng: np.random.Generator = field(default_factory=lambda: np.random.default_rng(0))
+    rng: np.random.Generator = field(default_factory=lambda: planner_rng(0))
 
 
 def _are_candidate_rays(rays, n_candidates: int) -> bool:

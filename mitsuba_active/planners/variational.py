@@ -10,6 +10,7 @@ same grid as the other planners.
 
 from __future__ import annotations
 
+from ..errors import UserError
 from .base import register
 from .rfe import RFEPlanner
 
@@ -36,6 +37,15 @@ class VariationalPlanner(RFEPlanner):
     def options(self):
         return {"form": self.form, "draws": self.draws, "max_std": self.max_std,
                 "entropy_weight": self.entropy_weight}
+
+    def check_state(self, state):
+        super().check_state(state)
+        from ..field import VariationalField
+
+        # A plain ensemble of one member has no spread to score: every candidate would score 0.
+        if not isinstance(state.ensemble, VariationalField):
+            raise UserError(f"the {self.name} planner scores with a VariationalField (its make_field), "
+                            f"got {type(state.ensemble).__name__}")
 
     def make_field(self, bbox_min, bbox_max, n_members, config, seed):
         from ..field import VariationalField

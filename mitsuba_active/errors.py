@@ -19,6 +19,11 @@ class SetupError(UserError, ImportError):
     """
 
 
+class TrainingDiverged(UserError):
+    """A field's training loss became NaN or infinite: its parameters are no
+    longer finite, and training the same way again diverges again."""
+
+
 class FolderInUse(UserError):
     """A run folder that another run is writing (in this process or another):
     raised before anything in it is touched, so nothing of the other run's is undone."""

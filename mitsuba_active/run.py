@@ -32,7 +32,7 @@ import numpy as np
 from .cameras import RIG_KINDS, camera_rays, snapped_up
 from .checks import is_number, is_whole
 from .env import ActiveViewEnv, SceneSource
-from .errors import FolderInUse, UserError
+from .errors import FolderInUse, TrainingDiverged, UserError
 from .groundtruth import MAX_SPP, View
 from .imageio_utils import (atomic_write, colorize, folder_lock, new_entries, remove_new, srgb_to_linear, write_exr,
                             write_png)
@@ -734,10 +734,19 @@ class Run:
 
         Raises:
             FolderInUse: another run is writing the folder now (nothing is touched).
+            TrainingDiverged: a field's training diverged; once the folder holds
+                a record, the message says that resuming would diverge again.
         """
         self.out.mkdir(parents=True, exist_ok=True)
         with folder_lock(self.out):
-            return self._execute()
+            try:
+                return self._execute()
+            except TrainingDiverged as exc:
+                if not self.record_path.is_file():
+                    raise
+                # Resumed, the run would train the same saved state the same way again.
+                raise TrainingDiverged(f"{exc}; resumed, {self.out} would diverge again: remove it, or choose "
+                                       "another run folder, to start over with other settings") from None
 
     def _execute(self) -> dict:
         from tqdm import tqdm

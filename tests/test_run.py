@@ -51,6 +51,29 @@ def test_train_on_without_views(source):
         train_on(ens, [source.candidate_view(0)], -1)
 
 
+def test_a_run_that_diverges_after_its_first_record_says_resuming_would_diverge_again(source, tmp_path,
+                                                                                      monkeypatch):
+    from mitsuba_active.errors import TrainingDiverged
+    from mitsuba_active.field import Ensemble
+
+    train, calls = Ensemble.train, []
+
+    def diverges_third(self, steps, progress=False):
+        calls.append(steps)
+        if len(calls) == 3:
+            raise TrainingDiverged("training diverged at step 40 (loss nan)")
+        return train(self, steps, progress)
+
+    monkeypatch.setattr(Ensemble, "train", diverges_third)
+    with pytest.raises(TrainingDiverged, match=r"^training diverged at step 40 \(loss nan\); resumed, .*r would "
+                                               "diverge again: remove it, or choose another run folder"):
+        _run(source, tmp_path / "r")
+    # Before the first record, the run folder goes (the command removes it) and the message stays as it is.
+    calls[:] = [0, 0]
+    with pytest.raises(TrainingDiverged, match=r"^training diverged at step 40 \(loss nan\)$"):
+        _run(source, tmp_path / "fresh")
+
+
 def test_random_picks_do_not_replay_the_initial_views(source, tmp_path):
     """The planner's stream is not the one the initial views came from: with 2
     of 10 candidates captured, ``random``'s first pick repeats one of them in

@@ -22,7 +22,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..checks import is_whole
-from ..errors import UserError
+from ..errors import TrainingDiverged, UserError
 from ..variant import require_variant
 from .config import MAX_MEMBERS, MAX_STEPS, FieldConfig
 from .grid import GridLayout, init_grid
@@ -365,7 +365,7 @@ class Ensemble:
         photometric MSE averaged over members (per step, before the update).
 
         Raises:
-            UserError: no rays set, or the loss became NaN/inf.
+            UserError: no rays set; TrainingDiverged (a UserError): the loss became NaN/inf.
         """
         if not is_whole(steps) or not 0 <= steps <= MAX_STEPS:
             raise UserError(f"train: steps must be a whole number in [0, {MAX_STEPS:,}], got {steps!r}")
@@ -394,7 +394,7 @@ class Ensemble:
                 weights = [f"{n} = {getattr(self.config, n):g}" for n in ("distance_weight", "empty_weight")
                            if getattr(self.config, n) > 0]
                 lower = "FieldConfig.lr" + (f" or the loss weights ({', '.join(weights)})" if weights else "")
-                raise UserError(f"training diverged at step {self._step} (loss {value}); lower {lower} "
+                raise TrainingDiverged(f"training diverged at step {self._step} (loss {value}); lower {lower} "
                                 "and start from a new ensemble (this one's parameters are no longer finite)")
             if bar is not None and (j % 10 == 0):
                 bar.set_postfix(mse=f"{value:.4g}")

@@ -9,7 +9,8 @@ A suite is a TOML file (see ``benchmarks/suites/shared.toml``)::
     candidates = 100
     [[scenes]]
     name = "spot"
-    mesh = "meshes/spot.obj"   # authored with scene_from_mesh (options: up, color, sun, floor, ...)
+    mesh = "meshes/spot.obj"   # authored with scene_from_mesh (options: up, color, sun, floor, texture, ...;
+                               # files relative to the suite; an xml scene takes none)
     [[scenes]]
     name = "room"
     xml = "room.xml"           # any Mitsuba scene
@@ -32,6 +33,7 @@ import signal
 import threading
 import time
 import warnings
+import tempfile
 import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
@@ -44,6 +46,8 @@ from .imageio_utils import folder_name, new_entries, remove_new, replaced_folder
 from .metrics import iqm, standard_error
 
 SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture")
+#: The report's folder of plots over all scenes, beside each scene's (no scene may be named so).
+SUMMARY = "summary"
 
 #: Settings of the two profiles. ``quick`` runs the whole suite with one seed,
 #: small images and short training, in minutes on two cores; ``full`` uses
@@ -148,6 +152,9 @@ def load_suite(path) -> Suite:
             planner_class(p.ref)
         except UserError as exc:
             raise UserError(f"{path}: {exc}") from None
+    title = data.get("name", path.stem)
+    if not isinstance(title, str) or not title.strip():
+        raise UserError(f"{path}: name must be a text (the suite's title), got {title!r}")
     defaults = data.get("defaults", {})
     if not isinstance(defaults, dict):
         raise UserError(f"{path}: defaults must be a table of settings ([defaults]), got {defaults!r}")
@@ -166,15 +173,22 @@ def load_suite(path) -> Suite:
         if not isinstance(s[kind], str):
             raise UserError(f"{path}: scene #{i + 1}: {kind} must be a file's path, got {s[kind]!r}")
         name = s.get("name") or Path(s[kind]).stem
-        # The name makes folders inside the suite's (scenes/NAME, runs/NAME).
-        if not isinstance(name, str) or name in (".", "..") or any(c in name for c in "/\\\0"):
-            raise UserError(f"{path}: scene #{i + 1}: name {name!r} cannot be a folder's name "
-                            "(no '/' or '\\', not '.' or '..')")
+        # The name makes folders inside the suite's (scenes/NAME, runs/NAME, report/plots/NAME beside
+        # report/plots/summary), CSV and Markdown cells and a --scenes entry.
+        if (not isinstance(name, str) or name in (".", "..", SUMMARY) or not name.isprintable()
+                or any(c in name for c in "/\\,|")):
+            raise UserError(f"{path}: scene #{i + 1}: name {name!r} cannot name a scene's folders and table rows "
+                            f"(no '/', '\\', ',' or '|', not '.', '..' or '{SUMMARY}')")
         extra = set(s) - {"name", "mesh", "xml"} - set(SCENE_OPTIONS) - run_fields
         if extra:
             raise UserError(f"{path}: scene '{name}' has unknown settings: {', '.join(sorted(extra))}")
         _check_tables(path, f"scene '{name}'", s)
         scene_options = {k: v for k, v in s.items() if k in SCENE_OPTIONS}
+        if kind == "xml" and scene_options:
+            raise UserError(f"{path}: scene '{name}': {', '.join(sorted(scene_options))} dress a mesh; "
+                            "an xml scene is rendered as its file says")
+        if isinstance(scene_options.get("texture"), str):  # named relative to the suite, as its files are
+            scene_options["texture"] = str((path.parent / scene_options["texture"]).resolve())
         try:
             SceneOptions(**scene_options)
         except UserError as exc:
@@ -190,7 +204,7 @@ def load_suite(path) -> Suite:
     names = [s.name for s in scenes]
     if len(set(names)) != len(names):
         raise UserError(f"{path}: scene names must be unique")
-    return Suite(data.get("name", path.stem), planners, scenes, defaults)
+    return Suite(title, planners, scenes, defaults)
 
 
 def _suite_planner(path: Path, entry) -> SuitePlanner:
@@ -366,6 +380,15 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
             remove_new(out_dir, *added)
             raise
     hashes = {xml: content_hash(Path(xml)) if Path(xml).is_file() else None for xml in {j.scene_xml for j in jobs}}
+    if not author:
+        # A mesh scene as the suite would author it now, in a scratch folder (the suite's is
+        # left as it is): runs of an edited mesh or options are refused, as a run of the suite would be.
+        with tempfile.TemporaryDirectory() as scratch, _mitsuba_warnings_muted():
+            for name, xml in meshes.items():
+                sc = next(sc for sc in suite.scenes if sc.name == name)
+                now = Path(scratch) / name / xml.name
+                _author_suite_scene(sc, now, [j for j in jobs if j.scene == name])
+                hashes[str(xml)] = content_hash(now)
     for job in jobs:
         job.content_hash = hashes[job.scene_xml]
     if author:
@@ -417,13 +440,21 @@ def _author_suite_scene(sc, xml: Path, jobs: list[Job]) -> None:
 
 
 def _refuse_other_runs(jobs: list[Job]) -> None:
-    """Refuse, before any run starts, a suite folder whose runs have other settings."""
-    from .run import conflicting_settings, other_planner_code, other_settings
+    """Refuse, before any run starts, a suite folder whose runs have other settings, were made with another
+    version of their scene or planner, or have a damaged record."""
+    from .run import conflicting_settings, other_planner_code, other_settings, read_record
 
     for job in jobs:
-        rec = _recorded(job)
-        if rec is None:
+        path = Path(job.out) / "run.json"
+        if not path.is_file():
             continue
+        try:
+            rec = read_record(path)
+        except UserError as exc:
+            raise UserError(f"{exc}; remove it to start over") from None
+        if job.content_hash is not None and rec.get("content_hash") not in (None, job.content_hash):
+            raise UserError(f"{job.out} holds a run of scene '{job.scene}' made with another version of it (its "
+                            "file or the files it names changed); use another --out, or undo the change")
         # A larger budget is not refused: the runs go on to it.
         changed = conflicting_settings(rec, job.config, compare_scene=job.content_hash is None)
         if changed:
@@ -775,8 +806,8 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
         mean_series = {p: [{"views": v, "psnr": float(np.mean(x))} for v, x in sorted(d.items())
                            if len(x) == len(shared)] for p, d in overall.items()}
         if any(mean_series.values()):
-            (folder / "plots" / "summary").mkdir(parents=True, exist_ok=True)
-            plot_metrics(mean_series, folder / "plots" / "summary", colors=colors,
+            (folder / "plots" / SUMMARY).mkdir(parents=True, exist_ok=True)
+            plot_metrics(mean_series, folder / "plots" / SUMMARY, colors=colors,
                          title=f"{suite.name}: mean over {len(shared)} scene{'' if len(shared) == 1 else 's'}")
     return summary
 

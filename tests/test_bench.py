@@ -291,8 +291,14 @@ def test_suite_runs_in_worker_processes(tiny_suite, tmp_path):
     ("planer = ['rfe']\n[default]\nbudget = 4\n[[scenes]]\nmesh='x.obj'\n", "unknown keys default, planer"),
     ("planners = 'rfe'\n[[scenes]]\nmesh='x.obj'\n", "planners must be a list"),
     # A scene's name makes its folders: it may not lead out of the suite's.
-    ("[[scenes]]\nname='../../escaped'\nmesh='x.obj'\n", "name '../../escaped' cannot be a folder's name"),
-    ("[[scenes]]\nname='..'\nmesh='x.obj'\n", "cannot be a folder's name"),
+    ("[[scenes]]\nname='../../escaped'\nmesh='x.obj'\n", "name '../../escaped' cannot name a scene's folders"),
+    ("[[scenes]]\nname='..'\nmesh='x.obj'\n", "cannot name a scene's folders"),
+    # ... nor split the CSV and Markdown tables' cells or a --scenes list, nor take the summary plots' folder.
+    ("[[scenes]]\nname='ball, big'\nmesh='x.obj'\n", r"name 'ball, big' cannot name .*no '/', '\\', ',' or '\|'"),
+    ("[[scenes]]\nname='a|b'\nmesh='x.obj'\n", "name 'a|b' cannot name"),
+    ("[[scenes]]\nname='summary'\nmesh='x.obj'\n", "name 'summary' cannot name .* or 'summary'"),
+    ("name = 1979-05-27\n[[scenes]]\nmesh='x.obj'\n", "name must be a text \\(the suite's title\\), got datetime"),
+    ("[[scenes]]\nxml='s.xml'\ncolor=[1, 0, 0]\nfloor=true\n", "scene 's': color, floor dress a mesh; an xml scene"),
     ("defaults = 3\n[[scenes]]\nmesh='x.obj'\n", "defaults must be a table of settings"),
     ("scenes = [1, 2]\n", "scenes must be tables"),
     ("[[scenes]]\nxml = 5\n", "scene #1: xml must be a file's path, got 5"),
@@ -305,6 +311,42 @@ def test_bad_suites(tmp_path, text, message):
     bad.write_bytes(text) if isinstance(text, bytes) else bad.write_text(text)
     with pytest.raises(UserError, match=message):
         load_suite(bad)
+
+
+def test_a_suites_texture_is_named_relative_to_the_suite(tmp_path, monkeypatch):
+    (tmp_path / "x.obj").write_text("")
+    (tmp_path / "s.toml").write_text("[[scenes]]\nmesh = 'x.obj'\ntexture = 't.png'\n")
+    monkeypatch.chdir("/")
+    assert load_suite(tmp_path / "s.toml").scenes[0].scene_options["texture"] == str(tmp_path / "t.png")
+
+
+def test_a_suite_folder_with_stale_or_damaged_runs_is_refused_before_anything_runs(tiny_suite, tmp_path,
+                                                                                   shared_data):
+    import shutil
+
+    shutil.copytree(shared_data / "mitsuba/simple", tmp_path / "simple")
+    text = tiny_suite.read_text().replace(str(shared_data / "mitsuba/simple/scene.xml"), "simple/scene.xml")
+    tiny_suite.write_text(text)
+    out = tmp_path / "out"
+    run_suite(tiny_suite, out, "quick", planners=["even"], progress=False)
+    runs = out / "runs"
+    # An edited mesh scene: --report-only refuses the old runs as a run of the suite does (it left them out
+    # of nothing and reported them as current).
+    tiny_suite.write_text(text.replace('mesh = "ball.ply"', 'mesh = "ball.ply"\ncolor = [0.9, 0.1, 0.1]'))
+    for report_only in (True, False):
+        with pytest.raises(UserError, match="the runs of scene 'ball' .* were made with another version of it"):
+            run_suite(tiny_suite, out, "quick", planners=["even"], progress=False, report_only=report_only)
+    tiny_suite.write_text(text)
+    # An edited xml scene, and a damaged record: refused before the new seed's runs start.
+    xml = tmp_path / "simple" / "scene.xml"
+    xml.write_text(xml.read_text().replace("0.9 0.9 0.0", "0.9 0.5 0.0"))
+    with pytest.raises(UserError, match="simple/even-seed0 holds a run of scene 'simple' made with another version"):
+        run_suite(tiny_suite, out, "quick", planners=["even"], seeds=[1, 0], progress=False)
+    shutil.copy(shared_data / "mitsuba/simple/scene.xml", xml)
+    (runs / "simple" / "even-seed0" / "run.json").write_text("{")
+    with pytest.raises(UserError, match="even-seed0/run.json is damaged .*; remove it to start over"):
+        run_suite(tiny_suite, out, "quick", planners=["even"], seeds=[1, 0], progress=False)
+    assert not list(runs.glob("*/even-seed1"))
 
 
 def test_a_suite_scene_that_is_no_xml_file_is_refused(tmp_path, shared_data):

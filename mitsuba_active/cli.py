@@ -132,13 +132,13 @@ def main():
 
 
 @main.command()
-@click.argument("mesh", type=click.Path(dir_okay=False))
-@click.option("-o", "--output", "out", required=True, type=click.Path(dir_okay=False),
+@click.argument("mesh", type=click.Path())  # a folder gets the command's own one-line error
+@click.option("-o", "--output", "out", required=True, type=click.Path(),
               help="Scene XML to write; the normalised mesh (PLY) and texture go beside it.")
 @click.option("--up", type=click.Choice(["y", "z"]), default="y", show_default=True, help="The mesh's up axis.")
 @click.option("--color", nargs=3, type=float, default=(0.6, 0.6, 0.6), show_default=True,
               help="Diffuse RGB reflectance when the mesh has no texture.")
-@click.option("--texture", type=click.Path(dir_okay=False), default=None,
+@click.option("--texture", type=click.Path(), default=None,
               help="Texture image (the mesh needs UVs). Default: the mesh's own, if any.")
 @click.option("--no-texture", is_flag=True, help="Ignore the mesh's texture.")
 @click.option("--env-radiance", type=float, default=1.0, show_default=True, help="Constant environment light.")
@@ -180,7 +180,7 @@ def _check_rig_options(rig: str) -> None:
 
 
 @main.command()
-@click.argument("scene_xml", required=False, type=click.Path(dir_okay=False))
+@click.argument("scene_xml", required=False, type=click.Path())
 @click.option("-o", "--output", "out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 @_rig_options
 @click.option("--views", type=int, default=None, help="Render only the first N views of the split [all].")

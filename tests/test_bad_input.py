@@ -869,3 +869,17 @@ def test_a_warning_stays_one_line(tmp_path):
     assert len(warned) == 1 and warned[0].endswith("skipped 1 of 10 frames whose image file is missing "
                                                    f"(e.g. {tmp_path / 'ds' / 'images'}/gone\\nmissing.png)"), \
         proc.stderr
+
+
+@pytest.mark.parametrize("command, message", [
+    (["scene", "{folder}", "-o", "{out}/x.xml"], "mesh file {folder} is a folder, not a file"),
+    (["scene", "{spot}", "-o", "{out}/x.xml", "--texture", "{folder}"], "texture {folder} is not a file"),
+    (["scene", "{spot}", "-o", "{folder}"], "the scene file to write must end in .xml"),
+    (["render", "{folder}", "-o", "{out}"], "{folder} is a folder, not a scene XML file"),
+])
+def test_a_folder_where_a_file_is_named_is_one_line(tmp_path, shared_data, command, message):
+    names = dict(folder=tmp_path / "folder", out=tmp_path / "out", spot=shared_data / "meshes" / "spot.obj")
+    names["folder"].mkdir()
+    code, output = run_cli(*[part.format(**names) for part in command])
+    assert_one_line_error(code, output, message.format(**names))
+    assert not (tmp_path / "out").exists()

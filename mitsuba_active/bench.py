@@ -385,6 +385,8 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
         # left as it is): runs of an edited mesh or options are refused, as a run of the suite would be.
         with tempfile.TemporaryDirectory() as scratch, _mitsuba_warnings_muted():
             for name, xml in meshes.items():
+                if not xml.is_file():  # never authored: no run in the folder was made from it
+                    continue
                 sc = next(sc for sc in suite.scenes if sc.name == name)
                 now = Path(scratch) / name / xml.name
                 _author_suite_scene(sc, now, [j for j in jobs if j.scene == name])

@@ -30,11 +30,11 @@ import contextlib
 import json
 import os
 import signal
+import tempfile
 import threading
 import time
-import warnings
-import tempfile
 import tomllib
+import warnings
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 

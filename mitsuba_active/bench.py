@@ -379,7 +379,7 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
         except BaseException:
             remove_new(out_dir, *added)
             raise
-    hashes = {xml: content_hash(Path(xml)) if Path(xml).is_file() else None for xml in {j.scene_xml for j in jobs}}
+    hashes = {}
     if not author:
         # A mesh scene as the suite would author it now, in a scratch folder (the suite's is
         # left as it is): runs of an edited mesh or options are refused, as a run of the suite would be.
@@ -391,6 +391,8 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                 now = Path(scratch) / name / xml.name
                 _author_suite_scene(sc, now, [j for j in jobs if j.scene == name])
                 hashes[str(xml)] = content_hash(now)
+    for xml in {j.scene_xml for j in jobs} - set(hashes):
+        hashes[xml] = content_hash(Path(xml)) if Path(xml).is_file() else None
     for job in jobs:
         job.content_hash = hashes[job.scene_xml]
     if author:
@@ -444,16 +446,13 @@ def _author_suite_scene(sc, xml: Path, jobs: list[Job]) -> None:
 def _refuse_other_runs(jobs: list[Job]) -> None:
     """Refuse, before any run starts, a suite folder whose runs have other settings, were made with another
     version of their scene or planner, or have a damaged record."""
-    from .run import conflicting_settings, other_planner_code, other_settings, read_record
+    from .run import conflicting_settings, other_planner_code, other_settings, read_resumable_record
 
     for job in jobs:
         path = Path(job.out) / "run.json"
         if not path.is_file():
             continue
-        try:
-            rec = read_record(path)
-        except UserError as exc:
-            raise UserError(f"{exc}; remove it to start over") from None
+        rec = read_resumable_record(path)
         if job.content_hash is not None and rec.get("content_hash") not in (None, job.content_hash):
             raise UserError(f"{job.out} holds a run of scene '{job.scene}' made with another version of it (its "
                             "file or the files it names changed); use another --out, or undo the change")

@@ -182,8 +182,7 @@ class ActiveViewEnv(gym.Env):
         ``terminated`` once ``budget`` views are captured; never truncated.
         Capturing a view again (a repeated action) uses up budget again.
         """
-        # gymnasium's Discrete takes True for 1 and "3" for nothing: name them as given.
-        if isinstance(action, (bool, np.bool_)) or not self.action_space.contains(action):
+        if not self._is_candidate_index(action):
             raise UserError(f"invalid action {action!r}; expected a candidate index (a whole number) "
                             f"in [0, {self.action_space.n})")
         if self.terminated:
@@ -217,7 +216,7 @@ class ActiveViewEnv(gym.Env):
 
     def restore(self, captured: list[int]) -> None:
         """Start over with exactly these candidates captured, in order (to resume a run)."""
-        bad = [i for i in captured if isinstance(i, (bool, np.bool_)) or not self.action_space.contains(i)]
+        bad = [i for i in captured if not self._is_candidate_index(i)]
         if bad:
             raise UserError(f"cannot restore captured views {bad!r}: expected candidate indices (whole numbers) "
                             f"in [0, {self.action_space.n})")
@@ -226,6 +225,10 @@ class ActiveViewEnv(gym.Env):
         self.captured, self.views = [], []
         for i in captured:
             self._capture(int(i))
+
+    def _is_candidate_index(self, value) -> bool:
+        # gymnasium's Discrete takes True for 1 and "3" for nothing: name them as given.
+        return not isinstance(value, (bool, np.bool_)) and self.action_space.contains(value)
 
     def _capture(self, index: int) -> View:
         view = self.source.candidate_view(index)

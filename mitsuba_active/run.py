@@ -309,6 +309,15 @@ RECORD_PARTS = {"config": dict, "candidates": list, "heldout": list, "captured":
 REQUIRED_PARTS = ("config", "candidates", "heldout", "captured", "metrics", "finished")
 
 
+def read_resumable_record(path) -> dict:
+    """:func:`read_record` of a run folder's record, for going on with the run:
+    a damaged one's message says how to start over."""
+    try:
+        return read_record(path)
+    except UserError as exc:
+        raise UserError(f"{exc}; remove it to start over") from None
+
+
 def read_record(path) -> dict:
     """The run record in ``path`` (run.json), its parts checked, so that a
     hand-edited or damaged record is refused in one line, not deep in a
@@ -620,10 +629,7 @@ class Run:
     def _load_or_start(self) -> bool:
         """Load an unfinished run from the folder; True when resuming."""
         if self.record_path.is_file():
-            try:
-                rec = read_record(self.record_path)
-            except UserError as exc:
-                raise UserError(f"{exc}; remove it to start over") from None
+            rec = read_resumable_record(self.record_path)
             # Scenes and datasets are compared by content, not by path; a record
             # without a digest (a dataset's, from before datasets had one) by path.
             by_content = rec.get("content_hash") is not None and self._content_hash() is not None

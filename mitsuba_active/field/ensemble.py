@@ -395,7 +395,7 @@ class Ensemble:
                            if getattr(self.config, n) > 0]
                 lower = "FieldConfig.lr" + (f" or the loss weights ({', '.join(weights)})" if weights else "")
                 raise TrainingDiverged(f"training diverged at step {self._step} (loss {value}); lower {lower} "
-                                "and start from a new ensemble (this one's parameters are no longer finite)")
+                                       "and start from a new ensemble (this one's parameters are no longer finite)")
             if bar is not None and (j % 10 == 0):
                 bar.set_postfix(mse=f"{value:.4g}")
         return losses

@@ -9,7 +9,9 @@ The XML is plain Mitsuba 3 and loads with ``mitsuba.load_file`` alone.
 from __future__ import annotations
 
 import dataclasses
+import filecmp
 import hashlib
+import itertools
 import os
 import re
 import shutil
@@ -129,14 +131,49 @@ def _find_texture(mesh, mesh_path: Path, texture) -> tuple[np.ndarray | None, Pa
             raise UserError(f"texture file not found: {tex}")
         _check_image(tex)
         return np.asarray(uv), tex
+    # The mesh's material first, then an image named like the mesh beside it.
+    image, file = _embedded_image(mesh), _material_file(mesh_path)
+    if image is not None and min(image.size) <= 2:
+        image = None  # trimesh's placeholder when there is none
+    if file is not None and (image is None or image.size == _image_size(file)):
+        return np.asarray(uv), file  # not an atlas trimesh packed of several materials: the file as it is
+    if image is not None:
+        return np.asarray(uv), "embedded"
     for pattern in TEXTURE_NAMES:
         cand = mesh_path.with_name(pattern.format(stem=mesh_path.stem))
         if cand.is_file():
             return np.asarray(uv), cand
-    image = _embedded_image(mesh)
-    if image is not None and min(image.size) > 2:  # trimesh puts a 2x2 placeholder when there is none
-        return np.asarray(uv), "embedded"
     return None, None
+
+
+def _material_file(mesh_path: Path) -> Path | None:
+    """The one image file an OBJ's materials name (``map_Kd``, which trimesh
+    misses when options precede the name); None for other formats, for
+    several images, or when Mitsuba cannot read it."""
+    if mesh_path.suffix.lower() != ".obj":
+        return None
+    found = set()
+    for lib in re.findall(rb"^mtllib[ \t]+(.+?)[ \t\r]*$", mesh_path.read_bytes(), re.M):
+        lib = lib.decode("utf-8", "replace")
+        for mtl in [mesh_path.parent / name for name in (lib, *lib.split())]:  # one name with spaces, or several
+            if mtl.is_file():
+                text = mtl.read_bytes()
+                found |= {(mtl.parent / name.decode("utf-8", "replace").split()[-1]).resolve()  # after options
+                          for name in re.findall(rb"^[ \t]*map_Kd[ \t]+(.+?)[ \t\r]*$", text, re.M)}
+    if len(found) != 1:
+        return None
+    (image,) = found
+    try:
+        _check_image(image)  # a file Mitsuba reads
+    except UserError:
+        return None
+    return image
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    import mitsuba as mi
+
+    return tuple(mi.Bitmap(str(path)).size())
 
 
 def _embedded_image(mesh):
@@ -187,6 +224,26 @@ def write_ply(path, vertices, faces, uv=None):
         f.write(fdata.tobytes())
 
 
+def _landing_name(staged: Path, out_dir: Path, name_for) -> tuple[str, bool]:
+    """The name ``staged`` will have in ``out_dir`` (it is renamed so in its
+    staging folder), and whether ``out_dir`` holds that file already.
+
+    The name is ``name_for(tag)`` with ``tag`` empty, or ``_scene``,
+    ``_scene2``, ...: the first that is free in ``out_dir`` or holds the same
+    bytes there. A file with other content (the input mesh, its texture, a
+    file of the user's or of another scene authored beside this one) is
+    never replaced.
+    """
+    for k in itertools.count():
+        name = name_for("" if k == 0 else "_scene" if k == 1 else f"_scene{k}")
+        target = out_dir / name
+        there = target.is_file() and filecmp.cmp(staged, target, shallow=False)
+        if there or (not target.exists() and not target.is_symlink()):
+            staged.rename(staged.with_name(name))
+            return name, there
+    raise AssertionError("unreachable")
+
+
 def _scene_xml(mesh_file: str, texture_file: str | None, opts: SceneOptions) -> str:
     c = " ".join(f"{x:g}" for x in opts.color)
     if texture_file:
@@ -230,9 +287,11 @@ def _scene_xml(mesh_file: str, texture_file: str | None, opts: SceneOptions) -> 
 def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, check=None, **kwargs) -> Path:
     """Author a Mitsuba scene XML around a mesh; returns the XML path.
 
-    The normalised mesh is written as ``<stem>.ply`` next to ``out_xml``
-    (with its texture image when it has one). Either every file is
-    written, or none is. ``kwargs`` override fields of :class:`SceneOptions`.
+    The normalised mesh is written as ``<stem>.ply`` next to ``out_xml``,
+    and its texture image, when it has one, as ``<stem>_texture.<ext>``.
+    A file of that name with other content is kept, and the scene's gets
+    another name (``<stem>_scene.ply``, ``<stem>_scene2.ply``, ...). Either
+    every file is written, or none is. ``kwargs`` override fields of :class:`SceneOptions`.
 
     ``check``, if given, is called with the new scene's :func:`content_hash`
     once it is authored and validated, before any of its files lands: it
@@ -255,9 +314,6 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
     out_dir.mkdir(parents=True, exist_ok=True)
     # Written names go into the XML: characters XML or Mitsuba's $parameters would misread become _.
     stem = re.sub(r"[^\w.-]", "_", mesh_path.stem)
-    mesh_file = f"{stem}.ply"
-    if (out_dir / mesh_file).resolve() == mesh_path.resolve():
-        mesh_file = f"{stem}_scene.ply"  # never overwrite the user's own mesh
     tex_file, staging = None, None
     try:
         try:
@@ -265,18 +321,19 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
         except OSError as exc:
             raise UserError(f"cannot write into {out_dir}: {exc.strerror}") from None
         # Mitsuba's PLY reader takes v as given, OBJ/trimesh UVs have v up: flip.
-        write_ply(staging / mesh_file, vertices, mesh.faces, None if uv is None else
+        write_ply(staging / "mesh.ply", vertices, mesh.faces, None if uv is None else
                   np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1))
+        mesh_file, there = _landing_name(staging / "mesh.ply", out_dir, lambda tag: f"{stem}{tag}.ply")
+        unchanged = {mesh_file} if there else set()
         if texture is not None:
-            tex_file = f"{stem}_texture{'.png' if texture == 'embedded' else Path(texture).suffix.lower()}"
-            target = out_dir / tex_file
-            if (out_dir.resolve() == mesh_path.parent.resolve() and target.exists()
-                    and (texture == "embedded" or target.resolve() != Path(texture).resolve())):
-                tex_file = f"{stem}_scene_texture{target.suffix}"  # never overwrite the mesh's own texture
-        if texture == "embedded":
-            _embedded_image(mesh).save(staging / tex_file)
-        elif texture is not None:
-            shutil.copyfile(texture, staging / tex_file)
+            suffix = ".png" if texture == "embedded" else Path(texture).suffix.lower()
+            if texture == "embedded":
+                _embedded_image(mesh).save(staging / f"texture{suffix}")
+            else:
+                shutil.copyfile(texture, staging / f"texture{suffix}")
+            tex_file, there = _landing_name(staging / f"texture{suffix}", out_dir,
+                                            lambda tag: f"{stem}{tag}_texture{suffix}")
+            unchanged |= {tex_file} if there else set()
         (staging / out_xml.name).write_text(_scene_xml(mesh_file, tex_file, opts))
         try:  # validate before anything lands
             _load_mitsuba(staging / out_xml.name)
@@ -286,7 +343,8 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
             check(content_hash(staging / out_xml.name))
         # The XML lands last: an XML on disk always finds its mesh and texture.
         for f in sorted(staging.iterdir(), key=lambda f: f.name == out_xml.name):
-            os.replace(f, out_dir / f.name)
+            if f.name not in unchanged:  # a file already there with these bytes is left as it is
+                os.replace(f, out_dir / f.name)
     except BaseException:
         remove_new(out_dir, *added)
         raise

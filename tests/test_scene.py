@@ -135,3 +135,45 @@ def test_interior_free_space(shared_data):
     scene = load_scene(shared_data / "mitsuba/cbox/cbox.xml")
     inside_box = [185.0, 80.0, 169.0]
     assert scene.free_space(np.array([scene.center, inside_box])).tolist() == [True, False]
+
+
+def test_authoring_never_replaces_a_file_with_other_content(tmp_path, shared_data):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "suzanne.ply").write_bytes(b"the user's own file")
+    mesh = shared_data / "meshes" / "suzanne.obj"
+    a = scene_from_mesh(mesh, out / "a.xml")
+    assert (out / "suzanne.ply").read_bytes() == b"the user's own file"
+    assert 'value="suzanne_scene.ply"' in a.read_text()
+    # A second scene of the same mesh turned another way keeps the first one whole.
+    a_mesh = (out / "suzanne_scene.ply").read_bytes()
+    b = scene_from_mesh(mesh, out / "b.xml", up="z")
+    assert 'value="suzanne_scene2.ply"' in b.read_text() and (out / "suzanne_scene.ply").read_bytes() == a_mesh
+    # Authored again as it was, a scene finds its own file and leaves it untouched.
+    mtime = (out / "suzanne_scene.ply").stat().st_mtime_ns
+    assert 'value="suzanne_scene.ply"' in scene_from_mesh(mesh, out / "c.xml").read_text()
+    assert (out / "suzanne_scene.ply").stat().st_mtime_ns == mtime
+    assert sorted(f.name for f in out.iterdir()) == ["a.xml", "b.xml", "c.xml", "suzanne.ply", "suzanne_scene.ply",
+                                                     "suzanne_scene2.ply"]
+    extent = [load_scene(xml).bbox_max - load_scene(xml).bbox_min for xml in (a, b)]
+    assert np.allclose(extent[0][[0, 2, 1]], extent[1], atol=1e-4) and not np.allclose(extent[0], extent[1], atol=1e-2)
+
+
+@pytest.mark.parametrize("options", ["", "-s 1 1 1 "])  # trimesh reads the image only without options
+def test_a_meshs_material_texture_comes_before_an_image_named_like_it(tmp_path, shared_data, options):
+    from PIL import Image
+
+    obj = tmp_path / "m.obj"
+    obj.write_bytes(b"mtllib m.mtl\nusemtl mat\n" + (shared_data / "meshes" / "spot.obj").read_bytes())
+    (tmp_path / "m.mtl").write_text(f"newmtl mat\nKd 1 1 1\nmap_Kd {options}tex/diffuse.jpg\n")
+    (tmp_path / "tex").mkdir()
+    Image.new("RGB", (16, 16), (10, 200, 10)).save(tmp_path / "tex" / "diffuse.jpg")
+    Image.new("RGB", (16, 16), (200, 10, 10)).save(tmp_path / "m.png")
+    xml = scene_from_mesh(obj, tmp_path / "out" / "m.xml")
+    # The material's own file, copied as it is (not re-encoded).
+    assert 'value="m_texture.jpg"' in xml.read_text()
+    assert (tmp_path / "out" / "m_texture.jpg").read_bytes() == (tmp_path / "tex" / "diffuse.jpg").read_bytes()
+    # Without a material, the image named like the mesh.
+    (tmp_path / "m.mtl").write_text("newmtl mat\nKd 1 1 1\n")
+    xml = scene_from_mesh(obj, tmp_path / "out2" / "m.xml")
+    assert (tmp_path / "out2" / "m_texture.png").read_bytes() == (tmp_path / "m.png").read_bytes()

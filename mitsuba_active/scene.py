@@ -244,7 +244,8 @@ def _landing_name(staged: Path, out_dir: Path, name_for) -> tuple[str, bool]:
     raise AssertionError("unreachable")
 
 
-def _scene_xml(mesh_file: str, texture_file: str | None, opts: SceneOptions) -> str:
+def _scene_xml(mesh_file: str, texture_file: str | None, opts: SceneOptions, bottom: float) -> str:
+    """The scene XML's text; ``bottom`` is the object's lowest height (y), where a floor goes."""
     c = " ".join(f"{x:g}" for x in opts.color)
     if texture_file:
         bsdf = (f'<bsdf type="diffuse"><texture type="bitmap" name="reflectance">'
@@ -275,10 +276,11 @@ def _scene_xml(mesh_file: str, texture_file: str | None, opts: SceneOptions) -> 
         lines.append(f'    <emitter type="point"><point name="position" x="{2 * np.cos(a):.4f}" y="2" '
                      f'z="{2 * np.sin(a):.4f}"/><rgb name="intensity" value="3"/></emitter>')
     if opts.floor:
-        # A platform a little wider than the object: a wider floor would widen the
-        # scene's bounds, and with them the camera rig and the fields' box.
+        # A platform a little wider than the object, just under its lowest point: a
+        # wider floor would widen the scene's bounds, and with them the camera rig and
+        # the fields' box.
         lines.append('    <shape type="rectangle" id="floor"><transform name="to_world"><rotate x="1" angle="-90"/>'
-                     f'<scale value="{FLOOR_HALF_WIDTH}"/><translate y="-0.501"/></transform>'
+                     f'<scale value="{FLOOR_HALF_WIDTH}"/><translate y="{bottom - 0.001:.6g}"/></transform>'
                      '<bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf></shape>')
     lines.append("</scene>")
     return "\n".join(lines) + "\n"
@@ -334,7 +336,7 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
             tex_file, there = _landing_name(staging / f"texture{suffix}", out_dir,
                                             lambda tag: f"{stem}{tag}_texture{suffix}")
             unchanged |= {tex_file} if there else set()
-        (staging / out_xml.name).write_text(_scene_xml(mesh_file, tex_file, opts))
+        (staging / out_xml.name).write_text(_scene_xml(mesh_file, tex_file, opts, float(vertices[:, 1].min())))
         try:  # validate before anything lands
             _load_mitsuba(staging / out_xml.name)
         except UserError as exc:  # name the files as the user will find them, not the staging folder

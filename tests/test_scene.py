@@ -74,6 +74,13 @@ def test_lights_floor_and_plain_colour(tmp_path, shared_data):
         assert min(c.position @ scene.up for c in cams) > floor_height
 
 
+@pytest.mark.parametrize("name", ["cow.obj", "teapot.obj", "suzanne.obj"])
+def test_the_floor_lies_just_under_the_object(tmp_path, shared_data, name):
+    scene = load_scene(scene_from_mesh(shared_data / "meshes" / name, tmp_path / "s.xml", floor=True))
+    heights = {shape.id(): (shape.bbox().min.y, shape.bbox().max.y) for shape in scene.mi_scene.shapes()}
+    assert 0 < heights["object"][0] - heights["floor"][1] < 0.002
+
+
 def test_a_glb_meshs_own_texture_is_used(tmp_path, shared_data):
     """glTF/GLB keep their texture in a PBR material's baseColorTexture, not in an OBJ material's image."""
     import trimesh

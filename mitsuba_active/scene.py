@@ -403,18 +403,14 @@ class Scene:
         A point is inside when a ray from it, along any of the six axis
         directions, first meets the back face of a surface.
         """
-        import drjit as dr
-        import mitsuba as mi
-
         points = np.asarray(points, dtype=np.float64)
         free = np.ones(len(points), dtype=bool)
         for axis in range(3):
             for sign in (-1.0, 1.0):
                 d = np.zeros((len(points), 3))
                 d[:, axis] = sign
-                ray = mi.Ray3f(mi.Point3f(points.T.astype(np.float32)), mi.Vector3f(d.T.astype(np.float32)))
-                si = self.mi_scene.ray_intersect(ray)
-                free &= ~np.array(si.is_valid() & (dr.dot(si.n, ray.d) > 0))
+                hit, front = _first_hits(self.mi_scene, points, d)
+                free &= ~(hit & ~front)
         return free
 
     @property
@@ -486,24 +482,53 @@ def _load_mitsuba(xml_path: Path, **params):
         raise UserError(f"Mitsuba cannot load {xml_path}: {_one_line(exc)}") from None
 
 
-def _is_interior(mi_scene, bbox_min, bbox_max, n=256) -> bool:
-    """True when rays cast from the box centre mostly hit front faces: we are inside a room.
-
-    Inside a closed object (the usual case for a mesh) rays hit back faces;
-    around an object with a hollow centre most rays escape.
-    """
+def _first_hits(mi_scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) bool arrays ``hit`` and ``front``: whether each ray (origins and
+    directions (N, 3)) meets a surface, and whether the first one faces it."""
     import drjit as dr
     import mitsuba as mi
 
-    from .cameras import fibonacci_directions
-
-    d = fibonacci_directions(n)
-    c = 0.5 * (bbox_min + bbox_max)
-    ray = mi.Ray3f(mi.Point3f(*[mi.Float(np.full(n, x)) for x in c]), mi.Vector3f(*[mi.Float(d[:, j]) for j in range(3)]))
+    o, d = (np.asarray(a, dtype=np.float32) for a in (origins, directions))
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, j]) for j in range(3)]),
+                   mi.Vector3f(*[mi.Float(d[:, j]) for j in range(3)]))
     si = mi_scene.ray_intersect(ray)
     hit = np.array(si.is_valid())
-    front = np.array(dr.dot(si.n, ray.d) < 0) & hit
-    return bool(hit.mean() > 0.75 and front.sum() > 0.8 * max(hit.sum(), 1))
+    return hit, np.array(dr.dot(si.n, ray.d) < 0) & hit
+
+
+def _is_interior(mi_scene, bbox_min, bbox_max, n=128) -> bool:
+    """True when the scene is a room to be seen from inside.
+
+    Rays go out from 27 probe points spread through the box. A probe whose
+    rays first meet back faces lies inside a closed object (a pillar, a
+    table) and is skipped. A free probe is enclosed when most of its rays hit,
+    and mostly front faces: so it is in a room, and also in the hollow of a
+    cup or a bowl. Two things tell a room from a hollow object: a room's
+    walls show their backs to rays from outside (a cup's outer wall faces
+    them), or, for walls with an outer side, the room encloses its probes
+    almost wholly (a cup's opening lets a probe's rays out).
+    """
+    from .cameras import fibonacci_directions
+
+    lo, hi = np.asarray(bbox_min, dtype=np.float64), np.asarray(bbox_max, dtype=np.float64)
+    steps = np.array([0.25, 0.5, 0.75])
+    probes = lo + np.stack(np.meshgrid(steps, steps, steps, indexing="ij"), -1).reshape(-1, 3) * (hi - lo)
+    d = fibonacci_directions(n)
+    hit, front = (a.reshape(len(probes), n) for a in _first_hits(mi_scene, np.repeat(probes, n, 0),
+                                                                    np.tile(d, (len(probes), 1))))
+    hits, fronts = hit.sum(axis=1), front.sum(axis=1)
+    free = hits - fronts <= 0.5 * hits
+    enclosed = free & (hits > 0.75 * n) & (fronts > 0.8 * hits)
+    if not enclosed.any() or enclosed.sum() < 0.5 * free.sum():
+        return False
+    # From outside: rays from a sphere around the box towards points spread through it.
+    m = 512
+    origins = 0.5 * (lo + hi) + np.linalg.norm(hi - lo) * fibonacci_directions(m)
+    targets = lo + np.random.default_rng(0).random((m, 3)) * (hi - lo)
+    toward = (targets - origins) / np.linalg.norm(targets - origins, axis=1, keepdims=True)
+    out_hit, out_front = _first_hits(mi_scene, origins, toward)
+    walls_face_in = (out_hit & ~out_front).sum() > 0.5 * out_hit.sum()
+    return bool(walls_face_in or hits[enclosed].mean() > 0.95 * n)
 
 
 #: Largest coordinate of a scene's geometry that single-precision rendering

@@ -111,6 +111,39 @@ def test_shared_mitsuba_scenes_load_unchanged(shared_data, rel, interior):
     assert (scene.bbox_max > scene.bbox_min).all()
 
 
+def _cup():
+    import trimesh
+
+    wall = trimesh.creation.annulus(r_min=0.42, r_max=0.5, height=1.0)
+    bottom = trimesh.creation.cylinder(radius=0.5, height=0.08)
+    bottom.apply_translation([0, 0, -0.46])
+    return trimesh.util.concatenate([wall, bottom])  # z up
+
+
+def _room(pillar=True, outer_walls=False):
+    import trimesh
+
+    room = trimesh.creation.box(extents=[4, 2.5, 4])
+    room.invert()  # walls facing in
+    table = trimesh.creation.box(extents=[0.8, 0.7, 0.5])
+    table.apply_translation([1.2, -0.9, 1.0])
+    parts = [room, table]
+    if pillar:  # right where the box's centre is
+        parts.append(trimesh.creation.box(extents=[0.6, 2.5, 0.6]))
+    if outer_walls:  # walls with an outer side too, as a house has
+        parts.append(trimesh.creation.box(extents=[4.4, 2.9, 4.4]))
+    return trimesh.util.concatenate(parts)
+
+
+@pytest.mark.parametrize("name,mesh,interior", [("cup", _cup, False), ("room_with_pillar", _room, True),
+                                                ("house", lambda: _room(False, True), True)])
+def test_rooms_are_told_from_hollow_objects(tmp_path, name, mesh, interior):
+    mesh().export(tmp_path / f"{name}.obj")
+    up = "z" if name == "cup" else "y"
+    scene = load_scene(scene_from_mesh(tmp_path / f"{name}.obj", tmp_path / f"{name}.xml", up=up))
+    assert scene.interior is interior
+
+
 def test_simple_scene_is_z_up(shared_data):
     assert np.allclose(load_scene(shared_data / "mitsuba/simple/scene.xml").up, [0, 0, 1])
 

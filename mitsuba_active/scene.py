@@ -424,17 +424,26 @@ def _one_line(exc) -> str:
     return text if len(text) <= 300 else text[:297] + "..."
 
 
-def _referenced_files(xml_path: Path, seen=None, base: Path | None = None, params=None) -> list[Path]:
-    """Existing files an XML names (``filename`` strings and includes), recursively.
+def _referenced_files(xml_path: Path, seen=None, resolver=None, base: Path | None = None,
+                      params=None) -> list[Path]:
+    """Existing files an XML names (includes, ``filename`` strings and
+    attributes such as a spectrum's), recursively.
 
-    Names resolve against the including file's folder or the top-level
-    scene's folder, as Mitsuba's file resolver does, with ``$`` parameters
-    replaced by ``params`` (the values the scene is loaded with) or, failing
-    those, the XML's ``<default>`` values. UserError if malformed.
+    Names resolve as Mitsuba finds them when it loads the top-level file:
+    in the folders its ``<path>`` elements add (relative to the top-level
+    file's folder), then that folder, then the resolver's own (the working
+    directory, Mitsuba's); an included file's names too. ``$`` parameters
+    are replaced by ``params`` (the values the scene is loaded with) or,
+    failing those, the XML's ``<default>`` values. UserError if malformed.
     """
+    import mitsuba as mi
+
     seen = set() if seen is None else seen
     params = {k: str(v) for k, v in (params or {}).items()}
     base = base or xml_path.parent
+    if resolver is None:
+        resolver = mi.FileResolver(mi.file_resolver())
+        resolver.prepend(str(base))
     try:
         root = ET.parse(xml_path).getroot()
     except ET.ParseError as exc:
@@ -445,21 +454,27 @@ def _referenced_files(xml_path: Path, seen=None, base: Path | None = None, param
         raise UserError(f"{xml_path} is not a Mitsuba scene (root element <{root.tag}>, expected <scene>)")
     for el in root.iter("default"):
         params.setdefault(el.get("name"), el.get("value"))
+
+    def named(text):  # None for a parameter given neither a value nor a default
+        text = re.sub(r"\$(\w+)", lambda m: params.get(m.group(1)) or m.group(0), text or "")
+        return text if text and "$" not in text else None
+
+    for el in root.iter("path"):
+        folder = named(el.get("value"))
+        if folder:
+            resolver.prepend(str(base / folder))
     files = []
     for el in root.iter():
-        name = el.get("filename") if el.tag == "include" else (
-            el.get("value") if el.tag == "string" and el.get("name") == "filename" else None)
-        if name and "$" in name:
-            name = re.sub(r"\$(\w+)", lambda m: params.get(m.group(1)) or m.group(0), name)
-        if not name or "$" in name:  # a parameter given neither a value nor a default
+        name = named(el.get("value") if el.tag == "string" and el.get("name") == "filename" else el.get("filename"))
+        if name is None:
             continue
-        f = next((p.resolve() for p in (xml_path.parent / name, base / name) if p.is_file()), None)
-        if f is None or f in seen:
+        f = Path(str(resolver.resolve(name)))
+        if not f.is_file() or f.resolve() in seen:
             continue  # a missing file is reported by Mitsuba itself
-        seen.add(f)
-        files.append(f)
+        seen.add(f.resolve())
+        files.append(f.resolve())
         if el.tag == "include":
-            files += _referenced_files(f, seen, base, params)
+            files += _referenced_files(f, seen, resolver, base, params)
     return files
 
 

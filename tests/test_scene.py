@@ -171,6 +171,32 @@ def test_content_hash_follows_files_named_through_parameters(tmp_path, shared_da
     assert load_scene(xml).content_hash != h1
 
 
+def test_content_hash_follows_files_where_mitsuba_finds_them(tmp_path, shared_data):
+    """Through a <path> folder, a spectrum's filename attribute, and an include's names, which
+    resolve against the top-level file's folder (not the included file's)."""
+    import shutil
+
+    for folder in ("assets", "frag"):
+        (tmp_path / folder).mkdir()
+    shutil.copyfile(shared_data / "meshes" / "suzanne.obj", tmp_path / "assets" / "a.obj")
+    shutil.copyfile(shared_data / "meshes" / "suzanne.obj", tmp_path / "b.obj")
+    shutil.copyfile(shared_data / "meshes" / "cow.obj", tmp_path / "frag" / "b.obj")  # not what Mitsuba loads
+    (tmp_path / "assets" / "white.spd").write_text("400 1\n700 1\n")
+    (tmp_path / "frag" / "part.xml").write_text('<scene version="3.0.0"><shape type="obj">'
+                                                '<string name="filename" value="b.obj"/></shape></scene>')
+    xml = tmp_path / "s.xml"
+    xml.write_text('<scene version="3.0.0"><path value="assets"/><include filename="frag/part.xml"/>'
+                   '<emitter type="constant"><spectrum name="radiance" filename="white.spd"/></emitter>'
+                   '<shape type="obj"><string name="filename" value="a.obj"/></shape></scene>')
+    scene = load_scene(xml)
+    assert sorted(s.vertex_count() for s in scene.mi_scene.shapes()) == [507, 507]  # suzanne twice, no cow
+    for edited in ("assets/a.obj", "assets/white.spd", "b.obj"):
+        before = load_scene(xml).content_hash
+        with open(tmp_path / edited, "a") as f:
+            f.write("# edited\n")
+        assert load_scene(xml).content_hash != before, edited
+
+
 def test_interior_free_space(shared_data):
     scene = load_scene(shared_data / "mitsuba/cbox/cbox.xml")
     inside_box = [185.0, 80.0, 169.0]

@@ -46,6 +46,16 @@ def test_mesh_names_that_xml_or_mitsuba_would_misread_are_written_plainly(tmp_pa
     assert np.isclose(np.max(scene.bbox_max - scene.bbox_min), 1.0, atol=1e-4)
 
 
+def test_a_mesh_of_any_size_is_normalised(tmp_path, shared_data):
+    import trimesh
+
+    mesh = trimesh.load(shared_data / "meshes" / "suzanne.obj", force="mesh")
+    mesh.apply_scale(1e-7)  # a microscopic part, in metres
+    mesh.export(tmp_path / "tiny.ply")
+    scene = load_scene(scene_from_mesh(tmp_path / "tiny.ply", tmp_path / "tiny.xml"))
+    assert np.isclose(np.max(scene.bbox_max - scene.bbox_min), 1.0, atol=1e-4)
+
+
 def test_up_axis_rotates_z_up_meshes_to_y_up():
     v = np.array([[0, 0, 0], [0.1, 0.2, 3.0]])  # tall along z
     y_up = normalise_vertices(v, "z")

@@ -380,6 +380,10 @@ def test_render_rays_dr_matches_numpy_render():
     np.testing.assert_array_equal(np.array(rgb1), np.array(rgb))
     np.testing.assert_array_equal(np.array(dist1), np.array(dist))
     np.testing.assert_array_equal(np.array(opac1), np.array(opac))
+    # A member the field does not have is refused, whether one index or one per ray.
+    for bad in (2, -1, mi.UInt32(np.arange(o.shape[0]) % 3)):
+        with pytest.raises(UserError, match="member index -?[0-9]+ out of range: the field has 2 member"):
+            render_rays_dr(ens, ray.o, ray.d, bad)
 
 
 def test_config_from_option_strings():

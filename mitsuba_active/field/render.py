@@ -26,6 +26,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from ..errors import UserError
 from .grid import GridLayout, query
 from .occupancy import occupied
 
@@ -415,10 +416,19 @@ def render_rays_dr(field, o, d, member=0):
             :class:`FieldParams`.
         o: ``mi.Point3f`` ray origins (or one for every ray), d: ``mi.Vector3f`` unit directions
             (e.g. ``ray.o``, ``ray.d`` of an ``mi.Ray3f`` inside an
-            integrator), member: int or ``mi.UInt32`` per ray.
+            integrator), member: int or ``mi.UInt32`` per ray, in [0, K)
+            (UserError otherwise; per-ray values are checked except while a
+            kernel is being traced).
     Returns:
         (rgb ``mi.Color3f``, distance ``mi.Float``, opacity ``mi.Float``).
     """
     params = field.params() if hasattr(field, "params") and callable(field.params) else field
+    # An index past the table reads another member's values or none. Inside a kernel being traced
+    # (an integrator's sample()) per-ray values cannot be read: keeping them in range is the caller's part.
+    if isinstance(member, (int, np.integer)) or not dr.flag(dr.JitFlag.SymbolicScope):
+        member = int(member) if isinstance(member, (int, np.integer)) else mi.UInt32(member)
+        top = member if isinstance(member, int) else int(dr.max(member)[0]) if dr.width(member) else 0
+        if not 0 <= top < params.n_members:
+            raise UserError(f"member index {top} out of range: the field has {params.n_members} member(s)")
     out = render_flat(params, mi.Point3f(o), mi.Vector3f(d), mi.UInt32(member))
     return out["rgb"], out["distance"], out["opacity"]

@@ -14,6 +14,7 @@ by ``diag(-1, 1, -1, 1)`` and ``diag(-1, -1, 1, 1)`` respectively.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 from fractions import Fraction
 
@@ -376,6 +377,10 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
         make = lambda n, off: fn(n, scene.center, radius, fov, width, height, off, up=scene.up,  # noqa: E731
                                  near=near, far=far)
     if rig == "xml":
+        if scene.sensors_off_centre:
+            warnings.warn(f"{scene.sensors_off_centre} of the {len(scene.sensors)} sensors of {scene.path} have a "
+                          "principal point offset, which rig 'xml' does not keep: their views are centred",
+                          stacklevel=2)
         candidates = [c.with_resolution(width, height) for c in scene.sensors]
     else:
         candidates = make(n_candidates, 0.0)

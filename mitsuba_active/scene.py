@@ -379,6 +379,9 @@ class Scene:
             (snapped to the nearest axis), +Y when there is no sensor.
         floor: True when a shape has the id ``floor`` (as ``scene --floor``
             authors it): cameras below it would see its underside only.
+        sensors_off_centre: how many of the XML's sensors have a principal
+            point offset, which :attr:`sensors` do not keep (their principal
+            point is the image centre).
     """
 
     path: Path
@@ -390,6 +393,7 @@ class Scene:
     sensors: list = field(default_factory=list)
     up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
     floor: bool = False
+    sensors_off_centre: int = 0
 
     @property
     def name(self) -> str:
@@ -622,16 +626,17 @@ def _describe(mi_scene, xml_path: Path, digest: str | None) -> Scene:
         # Squared distances (variances, errors) would overflow single precision.
         raise UserError(f"scene {xml_path} reaches {size:.3g} scene units from the origin, more than "
                         f"{MAX_SCENE_COORDINATE:.0e}; scale it down")
-    sensors = []
+    sensors, off_centre = [], 0
     for s in mi_scene.sensors():
         sensor_params = mi.traverse(s)
         if "x_fov" not in sensor_params.keys():
             continue  # not a perspective camera
+        off_centre += any(float(sensor_params[f"principal_point_offset_{axis}"][0]) != 0 for axis in "xy")
         size = s.film().crop_size()
         fov = float(sensor_params["x_fov"][0])
         m = np.array(s.world_transform().matrix, dtype=np.float64).reshape(4, 4)
         sensors.append(Camera(m, fov, int(size[0]), int(size[1]), float(s.near_clip()), float(s.far_clip())))
     up = snapped_up(sensors[:1])  # the first sensor's, as the scene's author set it up
     floor = any(shape.id() == "floor" for shape in mi_scene.shapes())
-    return Scene(xml_path, mi_scene, lo, hi, digest, _is_interior(mi_scene, lo, hi), sensors, up, floor)
+    return Scene(xml_path, mi_scene, lo, hi, digest, _is_interior(mi_scene, lo, hi), sensors, up, floor, off_centre)
 

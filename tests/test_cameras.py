@@ -51,6 +51,20 @@ def test_xml_rig_uses_the_scenes_own_sensor(shared_data):
     assert len(held) == 5
 
 
+def test_xml_rig_says_it_centres_off_centre_sensors(tmp_path):
+    sensor = ('<sensor type="perspective"><float name="fov" value="40"/>{}<transform name="to_world">'
+              '<lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform></sensor>')
+    xml = tmp_path / "s.xml"
+    xml.write_text('<scene version="3.0.0"><emitter type="constant"/><shape type="sphere"/>'
+                   + sensor.format('<float name="principal_point_offset_x" value="0.1"/>') + sensor.format("")
+                   + "</scene>")
+    scene = load_scene(xml)
+    assert scene.sensors_off_centre == 1
+    with pytest.warns(UserWarning, match="1 of the 2 sensors of .*s.xml have a principal point offset"):
+        cands, _ = scene_rigs(scene, "xml", n_heldout=2, width=8)
+    assert len(cands) == 2
+
+
 def test_rays_agree_with_intrinsics_and_pose():
     cam = Camera(look_at([1, 2, 3], [0, 0, 0]), fov=60.0, width=8, height=6)
     o, d = camera_rays(cam)

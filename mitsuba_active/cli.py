@@ -137,10 +137,11 @@ def main():
               help="Scene XML to write; the normalised mesh (PLY) and texture go beside it.")
 @click.option("--up", type=click.Choice(["y", "z"]), default="y", show_default=True, help="The mesh's up axis.")
 @click.option("--color", nargs=3, type=float, default=(0.6, 0.6, 0.6), show_default=True,
-              help="Diffuse RGB reflectance when the mesh has no texture.")
+              help="Diffuse RGB reflectance when the mesh has no texture or vertex colours.")
 @click.option("--texture", type=click.Path(), default=None,
-              help="Texture image (the mesh needs UVs). Default: the mesh's own, if any.")
-@click.option("--no-texture", is_flag=True, help="Ignore the mesh's texture.")
+              help="Texture image (the mesh needs UVs). Default: the mesh's own, else its vertex colours, "
+                   "if any.")
+@click.option("--no-texture", is_flag=True, help="Ignore the mesh's texture and vertex colours.")
 @click.option("--env-radiance", type=float, default=1.0, show_default=True, help="Constant environment light.")
 @click.option("--sun", is_flag=True, help="Add a directional sun light.")
 @click.option("--point-lights", type=click.IntRange(0, 16), default=0, show_default=True)

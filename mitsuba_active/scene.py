@@ -50,10 +50,12 @@ class SceneOptions:
 
     Attributes:
         up: the mesh's up axis, ``"y"`` or ``"z"``; the scene is Y-up.
-        color: diffuse RGB reflectance in [0, 1] when there is no texture.
+        color: diffuse RGB reflectance in [0, 1] when there is no texture
+            (or vertex colours).
         texture: an image to use as the diffuse texture (needs UVs); ``None``
             looks for the mesh's own (its material, or ``<stem>_texture.png``
-            beside it); ``False`` never textures.
+            beside it), else uses its vertex colours if it has them;
+            ``False`` never textures and ignores vertex colours.
         env_radiance: radiance of the constant environment light.
         sun: add a directional light from above.
         point_lights: number of point lights spread on a ring above the object.
@@ -173,6 +175,16 @@ def _material_file(mesh_path: Path) -> Path | None:
     return image
 
 
+def _vertex_colors(mesh) -> np.ndarray | None:
+    """(V, 3) float32 linear RGB of a mesh's own vertex colours (stored
+    sRGB-encoded, as images are), or None when it has none."""
+    from .imageio_utils import srgb_to_linear
+
+    if getattr(mesh.visual, "kind", None) != "vertex":
+        return None
+    return srgb_to_linear(np.asarray(mesh.visual.vertex_colors)[:, :3] / 255.0)
+
+
 def _image_size(path: Path) -> tuple[int, int]:
     import mitsuba as mi
 
@@ -210,15 +222,17 @@ def normalise_vertices(vertices: np.ndarray, up: str = "y") -> np.ndarray:
     return (v - 0.5 * (lo + hi)) / float(np.max(hi - lo))
 
 
-def write_ply(path, vertices, faces, uv=None):
-    """Write a binary little-endian PLY with optional per-vertex UVs (Mitsuba's ``u``/``v``)."""
+def write_ply(path, vertices, faces, uv=None, rgb=None):
+    """Write a binary little-endian PLY with optional per-vertex UVs (Mitsuba's
+    ``u``/``v``) and linear RGB colours in [0, 1] (``r``/``g``/``b``, which
+    Mitsuba reads as the ``vertex_color`` attribute)."""
     vertices = np.asarray(vertices, dtype=np.float32)
     faces = np.asarray(faces, dtype=np.int32)
-    props = ["x", "y", "z"] + (["u", "v"] if uv is not None else [])
+    props = ["x", "y", "z"] + (["u", "v"] if uv is not None else []) + (["r", "g", "b"] if rgb is not None else [])
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(vertices)}"]
     header += [f"property float {p}" for p in props]
     header += [f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
-    vdata = vertices if uv is None else np.hstack([vertices, np.asarray(uv, dtype=np.float32)])
+    vdata = np.hstack([vertices] + [np.asarray(a, dtype=np.float32) for a in (uv, rgb) if a is not None])
     fdata = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
     fdata["n"], fdata["i"] = 3, faces
     with open(path, "wb") as f:
@@ -247,10 +261,14 @@ def _landing_name(staged: Path, out_dir: Path, name_for) -> tuple[str, bool]:
     raise AssertionError("unreachable")
 
 
-def _scene_xml(mesh_file: str, texture_file: str | None, opts: SceneOptions, bottom: float) -> str:
+def _scene_xml(mesh_file: str, texture_file: str | None, opts: SceneOptions, bottom: float,
+               vertex_colors: bool) -> str:
     """The scene XML's text; ``bottom`` is the object's lowest height (y), where a floor goes."""
     c = " ".join(f"{x:g}" for x in opts.color)
-    if texture_file:
+    if vertex_colors:
+        bsdf = ('<bsdf type="diffuse"><texture type="mesh_attribute" name="reflectance">'
+                '<string name="name" value="vertex_color"/></texture></bsdf>')
+    elif texture_file:
         bsdf = (f'<bsdf type="diffuse"><texture type="bitmap" name="reflectance">'
                 f'<string name="filename" value="{texture_file}"/></texture></bsdf>')
     else:
@@ -313,6 +331,7 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
     mesh = load_mesh(mesh_path)
     vertices = normalise_vertices(mesh.vertices, opts.up)
     uv, texture = _find_texture(mesh, mesh_path, opts.texture)
+    rgb = _vertex_colors(mesh) if texture is None and opts.texture is None else None
 
     out_dir = out_xml.parent if str(out_xml.parent) else Path(".")
     added = new_entries(out_dir)  # undone on failure
@@ -327,7 +346,7 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
             raise UserError(f"cannot write into {out_dir}: {exc.strerror}") from None
         # Mitsuba's PLY reader takes v as given, OBJ/trimesh UVs have v up: flip.
         write_ply(staging / "mesh.ply", vertices, mesh.faces, None if uv is None else
-                  np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1))
+                  np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1), rgb)
         mesh_file, there = _landing_name(staging / "mesh.ply", out_dir, lambda tag: f"{stem}{tag}.ply")
         unchanged = {mesh_file} if there else set()
         if texture is not None:
@@ -339,7 +358,8 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
             tex_file, there = _landing_name(staging / f"texture{suffix}", out_dir,
                                             lambda tag: f"{stem}{tag}_texture{suffix}")
             unchanged |= {tex_file} if there else set()
-        (staging / out_xml.name).write_text(_scene_xml(mesh_file, tex_file, opts, float(vertices[:, 1].min())))
+        text = _scene_xml(mesh_file, tex_file, opts, float(vertices[:, 1].min()), rgb is not None)
+        (staging / out_xml.name).write_text(text)
         try:  # validate before anything lands
             _load_mitsuba(staging / out_xml.name)
         except UserError as exc:  # name the files as the user will find them, not the staging folder

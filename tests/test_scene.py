@@ -56,6 +56,27 @@ def test_a_mesh_of_any_size_is_normalised(tmp_path, shared_data):
     assert np.isclose(np.max(scene.bbox_max - scene.bbox_min), 1.0, atol=1e-4)
 
 
+def test_a_meshs_vertex_colours_are_its_reflectance(tmp_path, shared_data):
+    import trimesh
+
+    from mitsuba_active.cameras import Camera, look_at
+
+    mesh = trimesh.load(shared_data / "meshes" / "suzanne.obj", force="mesh")
+    red = np.tile([200, 30, 30, 255], (len(mesh.vertices), 1)).astype(np.uint8)
+    mesh.visual = trimesh.visual.ColorVisuals(mesh, vertex_colors=red)
+    mesh.export(tmp_path / "red.ply")
+    cam = Camera(look_at([0, 0, 2.5], [0, 0, 0]), fov=30.0, width=16, height=16)
+
+    def centre_pixel(**options):
+        xml = scene_from_mesh(tmp_path / "red.ply", tmp_path / "out" / "s.xml", **options)
+        return np.array(mi.render(load_scene(xml).mi_scene, sensor=cam.sensor(16)))[8, 8]
+
+    r, g, b = centre_pixel()
+    assert r > 3 * g and r > 3 * b
+    r, g, b = centre_pixel(texture=False, color=(0.2, 0.2, 0.8))  # --no-texture: the plain colour
+    assert b > 2 * r
+
+
 def test_up_axis_rotates_z_up_meshes_to_y_up():
     v = np.array([[0, 0, 0], [0.1, 0.2, 3.0]])  # tall along z
     y_up = normalise_vertices(v, "z")

@@ -45,7 +45,7 @@ from .errors import UserError
 from .imageio_utils import folder_name, new_entries, remove_new, replaced_folder
 from .metrics import iqm, standard_error
 
-SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture")
+SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture", "two_sided")
 #: The report's folder of plots over all scenes, beside each scene's (no scene may be named so).
 SUMMARY = "summary"
 

@@ -146,13 +146,16 @@ def main():
 @click.option("--sun", is_flag=True, help="Add a directional sun light.")
 @click.option("--point-lights", type=click.IntRange(0, 16), default=0, show_default=True)
 @click.option("--floor", is_flag=True, help="Add a floor under the object.")
+@click.option("--two-sided", is_flag=True,
+              help="Reflect on both sides of the surface (else its back is black, as an open mesh shows).")
 @_one_line_errors
-def scene(mesh, out, up, color, texture, no_texture, env_radiance, sun, point_lights, floor):
+def scene(mesh, out, up, color, texture, no_texture, env_radiance, sun, point_lights, floor, two_sided):
     """Author a Mitsuba scene XML around MESH (OBJ, PLY, STL, GLB, glTF, OFF)."""
     from .scene import scene_from_mesh
 
     path = scene_from_mesh(mesh, out, up=up, color=tuple(color), texture=False if no_texture else texture,
-                           env_radiance=env_radiance, sun=sun, point_lights=point_lights, floor=floor)
+                           env_radiance=env_radiance, sun=sun, point_lights=point_lights, floor=floor,
+                           two_sided=two_sided)
     click.echo(f"wrote {path}")
 
 

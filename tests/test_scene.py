@@ -77,6 +77,21 @@ def test_a_meshs_vertex_colours_are_its_reflectance(tmp_path, shared_data):
     assert b > 2 * r
 
 
+def test_two_sided_surfaces_reflect_from_behind(tmp_path):
+    import trimesh
+
+    from mitsuba_active.cameras import Camera, look_at
+
+    sheet = trimesh.Trimesh([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], [[0, 1, 2], [0, 2, 3]])  # faces +z
+    sheet.export(tmp_path / "sheet.ply")
+    behind = Camera(look_at([0, 0, -2], [0, 0, 0]), fov=20.0, width=8, height=8)
+    seen = {}
+    for two_sided in (False, True):
+        xml = scene_from_mesh(tmp_path / "sheet.ply", tmp_path / f"{two_sided}" / "s.xml", two_sided=two_sided)
+        seen[two_sided] = float(np.array(mi.render(load_scene(xml).mi_scene, sensor=behind.sensor(4))).mean())
+    assert seen[False] < 0.01 and seen[True] > 0.2
+
+
 def test_up_axis_rotates_z_up_meshes_to_y_up():
     v = np.array([[0, 0, 0], [0.1, 0.2, 3.0]])  # tall along z
     y_up = normalise_vertices(v, "z")

@@ -168,7 +168,7 @@ def _material_file(mesh_path: Path) -> Path | None:
             if mtl.is_file():
                 text = mtl.read_bytes()
                 found |= {(mtl.parent / name.decode("utf-8", "replace").split()[-1]).resolve()  # after options
-                          for name in re.findall(rb"^[ \t]*map_Kd[ \t]+(.+?)[ \t\r]*$", text, re.M)}
+                          for name in re.findall(rb"^[ \t]*map_Kd[ \t]+(\S.*?)[ \t\r]*$", text, re.M)}
     if len(found) != 1:
         return None
     (image,) = found
@@ -180,13 +180,18 @@ def _material_file(mesh_path: Path) -> Path | None:
 
 
 def _vertex_colors(mesh) -> np.ndarray | None:
-    """(V, 3) float32 linear RGB of a mesh's own vertex colours (stored
-    sRGB-encoded, as images are), or None when it has none."""
+    """(V, 3) float32 linear RGB of a mesh's own vertex (or face) colours
+    (stored sRGB-encoded, as images are), or None when it has none."""
     from .imageio_utils import srgb_to_linear
 
-    if getattr(mesh.visual, "kind", None) != "vertex":
+    if getattr(mesh.visual, "kind", None) in ("vertex", "face"):  # face colours: averaged at each vertex
+        colors = np.asarray(mesh.visual.vertex_colors)
+    else:  # a mesh with UVs too keeps them among its vertex attributes
+        colors = np.asarray(mesh.vertex_attributes.get("color", np.zeros((0, 3))))
+    if colors.ndim != 2 or len(colors) != len(mesh.vertices) or colors.shape[1] < 3:
         return None
-    return srgb_to_linear(np.asarray(mesh.visual.vertex_colors)[:, :3] / 255.0)
+    scale = 255.0 if np.issubdtype(colors.dtype, np.integer) else 1.0  # bytes, or floats in [0, 1]
+    return srgb_to_linear(colors[:, :3] / scale)
 
 
 def _image_size(path: Path) -> tuple[int, int]:
@@ -245,21 +250,40 @@ def write_ply(path, vertices, faces, uv=None, rgb=None):
         f.write(fdata.tobytes())
 
 
-def _landing_name(staged: Path, out_dir: Path, name_for) -> tuple[str, bool]:
+def _replaceable(out_xml: Path, keep: set[Path]) -> set[Path]:
+    """Files that authoring ``out_xml`` anew may replace: those the XML being
+    replaced names that no other scene XML beside it names, except ``keep``
+    (resolved paths: the input mesh and its own textures)."""
+    def named_by(xml: Path) -> set[Path]:
+        try:
+            return set(_referenced_files(xml))
+        except UserError:  # not a scene, or damaged: it names nothing
+            return set()
+
+    if not out_xml.is_file():
+        return set()
+    own = named_by(out_xml)
+    for other in out_xml.parent.glob("*.xml"):
+        if own and other.resolve() != out_xml.resolve():
+            own -= named_by(other)
+    return own - keep
+
+
+def _landing_name(staged: Path, out_dir: Path, name_for, replaceable: set[Path]) -> tuple[str, bool]:
     """The name ``staged`` will have in ``out_dir`` (it is renamed so in its
     staging folder), and whether ``out_dir`` holds that file already.
 
     The name is ``name_for(tag)`` with ``tag`` empty, or ``_scene``,
-    ``_scene2``, ...: the first that is free in ``out_dir`` or holds the same
-    bytes there. A file with other content (the input mesh, its texture, a
-    file of the user's or of another scene authored beside this one) is
-    never replaced.
+    ``_scene2``, ...: the first that is free in ``out_dir``, holds the same
+    bytes there, or is ``replaceable`` (see :func:`_replaceable`). Any
+    other file (the input mesh, its texture, a file of the user's or of
+    another scene beside this one) is never replaced.
     """
     for k in itertools.count():
         name = name_for("" if k == 0 else "_scene" if k == 1 else f"_scene{k}")
         target = out_dir / name
         there = target.is_file() and filecmp.cmp(staged, target, shallow=False)
-        if there or (not target.exists() and not target.is_symlink()):
+        if there or (not target.exists() and not target.is_symlink()) or target.resolve() in replaceable:
             staged.rename(staged.with_name(name))
             return name, there
     raise AssertionError("unreachable")
@@ -318,9 +342,11 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
 
     The normalised mesh is written as ``<stem>.ply`` next to ``out_xml``,
     and its texture image, when it has one, as ``<stem>_texture.<ext>``.
-    A file of that name with other content is kept, and the scene's gets
-    another name (``<stem>_scene.ply``, ``<stem>_scene2.ply``, ...). Either
-    every file is written, or none is. ``kwargs`` override fields of :class:`SceneOptions`.
+    A file of that name with other content is replaced only when the XML
+    being replaced names it and no other XML beside it does (nor is it the
+    mesh or its own texture); else it is kept, and the scene's gets another
+    name (``<stem>_scene.ply``, ``<stem>_scene2.ply``, ...). Either every
+    file is written, or none is. ``kwargs`` override fields of :class:`SceneOptions`.
 
     ``check``, if given, is called with the new scene's :func:`content_hash`
     once it is authored and validated, before any of its files lands: it
@@ -353,7 +379,12 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
         # Mitsuba's PLY reader takes v as given, OBJ/trimesh UVs have v up: flip.
         write_ply(staging / "mesh.ply", vertices, mesh.faces, None if uv is None else
                   np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1), rgb)
-        mesh_file, there = _landing_name(staging / "mesh.ply", out_dir, lambda tag: f"{stem}{tag}.ply")
+        keep = {mesh_path.resolve(), *(mesh_path.with_name(n.format(stem=mesh_path.stem)).resolve()
+                                       for n in TEXTURE_NAMES)}
+        if texture not in (None, "embedded"):
+            keep.add(Path(texture).resolve())
+        replaceable = _replaceable(out_xml, keep)
+        mesh_file, there = _landing_name(staging / "mesh.ply", out_dir, lambda tag: f"{stem}{tag}.ply", replaceable)
         unchanged = {mesh_file} if there else set()
         if texture is not None:
             suffix = ".png" if texture == "embedded" else Path(texture).suffix.lower()
@@ -362,7 +393,7 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
             else:
                 shutil.copyfile(texture, staging / f"texture{suffix}")
             tex_file, there = _landing_name(staging / f"texture{suffix}", out_dir,
-                                            lambda tag: f"{stem}{tag}_texture{suffix}")
+                                            lambda tag: f"{stem}{tag}_texture{suffix}", replaceable)
             unchanged |= {tex_file} if there else set()
         text = _scene_xml(mesh_file, tex_file, opts, float(vertices[:, 1].min()), rgb is not None)
         (staging / out_xml.name).write_text(text)
@@ -544,17 +575,18 @@ def _first_hits(mi_scene, origins: np.ndarray, directions: np.ndarray) -> tuple[
     return hit, np.array(dr.dot(si.n, ray.d) < 0) & hit
 
 
-def _is_interior(mi_scene, bbox_min, bbox_max, n=128) -> bool:
+def _is_interior(mi_scene, bbox_min, bbox_max, up=(0.0, 1.0, 0.0), n=128) -> bool:
     """True when the scene is a room to be seen from inside.
 
     Rays go out from 27 probe points spread through the box. A probe whose
     rays first meet back faces lies inside a closed object (a pillar, a
-    table) and is skipped. A free probe is enclosed when most of its rays hit,
-    and mostly front faces: so it is in a room, and also in the hollow of a
-    cup or a bowl. Two things tell a room from a hollow object: a room's
-    walls show their backs to rays from outside (a cup's outer wall faces
-    them), or, for walls with an outer side, the room encloses its probes
-    almost wholly (a cup's opening lets a probe's rays out).
+    table) and is skipped. A free probe is enclosed when most of its rays
+    hit, and mostly front faces: so it is in a room, and also in the hollow
+    of a cup, a bowl or a vase. What tells them apart is where the rays that
+    get out go: a container opens upwards (along ``up``), a room is closed,
+    or open at a side (as the Cornell box is at its front), or has walls
+    that show their backs to rays from outside (a room of one-sided walls,
+    also when it has no ceiling).
     """
     from .cameras import fibonacci_directions
 
@@ -569,14 +601,17 @@ def _is_interior(mi_scene, bbox_min, bbox_max, n=128) -> bool:
     enclosed = free & (hits > 0.75 * n) & (fronts > 0.8 * hits)
     if not enclosed.any() or enclosed.sum() < 0.5 * free.sum():
         return False
+    escapes = d[None, :, :] * ~hit[enclosed][:, :, None]  # (probes, n, 3), zero where a ray hit
+    opens_upwards = escapes.any() and (escapes @ np.asarray(up, dtype=np.float64)).sum() > 0.5 * (~hit[enclosed]).sum()
+    if not opens_upwards:
+        return True
     # From outside: rays from a sphere around the box towards points spread through it.
     m = 512
     origins = 0.5 * (lo + hi) + np.linalg.norm(hi - lo) * fibonacci_directions(m)
     targets = lo + np.random.default_rng(0).random((m, 3)) * (hi - lo)
     toward = (targets - origins) / np.linalg.norm(targets - origins, axis=1, keepdims=True)
     out_hit, out_front = _first_hits(mi_scene, origins, toward)
-    walls_face_in = (out_hit & ~out_front).sum() > 0.5 * out_hit.sum()
-    return bool(walls_face_in or hits[enclosed].mean() > 0.95 * n)
+    return bool((out_hit & ~out_front).sum() > 0.5 * out_hit.sum())
 
 
 #: Largest coordinate of a scene's geometry that single-precision rendering
@@ -657,12 +692,15 @@ def _describe(mi_scene, xml_path: Path, digest: str | None) -> Scene:
         sensor_params = mi.traverse(s)
         if "x_fov" not in sensor_params.keys():
             continue  # not a perspective camera
-        off_centre += any(float(sensor_params[f"principal_point_offset_{axis}"][0]) != 0 for axis in "xy")
+        off_centre += any(float(sensor_params[key][0]) != 0 for key in ("principal_point_offset_x",
+                                                                         "principal_point_offset_y")
+                          if key in sensor_params.keys())  # a thinlens camera has none
         size = s.film().crop_size()
         fov = float(sensor_params["x_fov"][0])
         m = np.array(s.world_transform().matrix, dtype=np.float64).reshape(4, 4)
         sensors.append(Camera(m, fov, int(size[0]), int(size[1]), float(s.near_clip()), float(s.far_clip())))
     up = snapped_up(sensors[:1])  # the first sensor's, as the scene's author set it up
     floor = any(shape.id() == "floor" for shape in mi_scene.shapes())
-    return Scene(xml_path, mi_scene, lo, hi, digest, _is_interior(mi_scene, lo, hi), sensors, up, floor, off_centre)
+    return Scene(xml_path, mi_scene, lo, hi, digest, _is_interior(mi_scene, lo, hi, up), sensors, up, floor,
+                 off_centre)
 

@@ -63,6 +63,12 @@ def test_xml_rig_says_it_centres_off_centre_sensors(tmp_path):
     with pytest.warns(UserWarning, match="1 of the 2 sensors of .*s.xml have a principal point offset"):
         cands, _ = scene_rigs(scene, "xml", n_heldout=2, width=8)
     assert len(cands) == 2
+    # A thin-lens camera has no principal point offset to read.
+    xml.write_text('<scene version="3.0.0"><emitter type="constant"/><shape type="sphere"/>'
+                   + sensor.format("").replace('type="perspective">', 'type="thinlens"><float name="aperture_radius" '
+                                               'value="0.01"/><float name="focus_distance" value="4"/>')
+                   + "</scene>")
+    assert load_scene(xml).sensors_off_centre == 0 and len(load_scene(xml).sensors) == 1
 
 
 def test_rays_agree_with_intrinsics_and_pose():

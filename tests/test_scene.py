@@ -33,6 +33,9 @@ def test_a_texture_given_beside_the_mesh_leaves_the_meshs_own_alone(tmp_path, sh
     # Without --texture the mesh's own is used where it lies.
     xml = scene_from_mesh(tmp_path / "spot.obj", tmp_path / "spot.xml")
     assert 'value="spot_texture.png"' in xml.read_text() and (tmp_path / "spot_texture.png").read_bytes() == own
+    # The XML being replaced names the mesh's own texture: it stays all the same.
+    xml = scene_from_mesh(tmp_path / "spot.obj", tmp_path / "spot.xml", texture=tmp_path / "red.png")
+    assert (tmp_path / "spot_texture.png").read_bytes() == own and 'value="spot_scene_texture.png"' in xml.read_text()
 
 
 def test_mesh_names_that_xml_or_mitsuba_would_misread_are_written_plainly(tmp_path, shared_data):
@@ -73,6 +76,16 @@ def test_a_meshs_vertex_colours_are_its_reflectance(tmp_path, shared_data):
 
     r, g, b = centre_pixel()
     assert r > 3 * g and r > 3 * b
+    # Kept as well beside texture coordinates (trimesh then holds them among the vertex attributes).
+    header = (f"ply\nformat ascii 1.0\nelement vertex {len(mesh.vertices)}\n"
+              + "".join(f"property float {p}\n" for p in "xyzst")
+              + "".join(f"property uchar {c}\n" for c in ("red", "green", "blue"))
+              + f"element face {len(mesh.faces)}\nproperty list uchar int vertex_indices\nend_header\n")
+    rows = [f"{x} {y} {z} 0.5 0.5 200 30 30" for x, y, z in mesh.vertices]
+    rows += [f"3 {a} {b} {c}" for a, b, c in mesh.faces]
+    (tmp_path / "red_uv.ply").write_text(header + "\n".join(rows) + "\n")
+    assert trimesh.load(tmp_path / "red_uv.ply", force="mesh").visual.kind == "texture"
+    assert "vertex_color" in scene_from_mesh(tmp_path / "red_uv.ply", tmp_path / "uv" / "s.xml").read_text()
     r, g, b = centre_pixel(texture=False, color=(0.2, 0.2, 0.8))  # --no-texture: the plain colour
     assert b > 2 * r
 
@@ -157,13 +170,27 @@ def test_shared_mitsuba_scenes_load_unchanged(shared_data, rel, interior):
     assert (scene.bbox_max > scene.bbox_min).all()
 
 
-def _cup():
+def _cup(radius=0.5):
     import trimesh
 
-    wall = trimesh.creation.annulus(r_min=0.42, r_max=0.5, height=1.0)
-    bottom = trimesh.creation.cylinder(radius=0.5, height=0.08)
+    wall = trimesh.creation.annulus(r_min=0.84 * radius, r_max=radius, height=1.0)
+    bottom = trimesh.creation.cylinder(radius=radius, height=0.08)
     bottom.apply_translation([0, 0, -0.46])
     return trimesh.util.concatenate([wall, bottom])  # z up
+
+
+def _open_front_room():
+    """The Cornell box's layout, of solid walls."""
+    import trimesh
+
+    def slab(extents, at):
+        box = trimesh.creation.box(extents=extents)
+        box.apply_translation(at)
+        return box
+
+    return trimesh.util.concatenate([slab([4, 0.2, 4], [0, -1.25, 0]), slab([4, 0.2, 4], [0, 1.25, 0]),
+                                     slab([0.2, 2.5, 4], [-2, 0, 0]), slab([0.2, 2.5, 4], [2, 0, 0]),
+                                     slab([4, 2.5, 0.2], [0, 0, -2]), slab([0.8, 0.7, 0.5], [1.2, -0.9, 1.0])])
 
 
 def _room(pillar=True, outer_walls=False):
@@ -181,11 +208,13 @@ def _room(pillar=True, outer_walls=False):
     return trimesh.util.concatenate(parts)
 
 
-@pytest.mark.parametrize("name,mesh,interior", [("cup", _cup, False), ("room_with_pillar", _room, True),
-                                                ("house", lambda: _room(False, True), True)])
+@pytest.mark.parametrize("name,mesh,interior", [("cup", _cup, False), ("vase", lambda: _cup(0.2), False),
+                                                ("room_with_pillar", _room, True),
+                                                ("house", lambda: _room(False, True), True),
+                                                ("open_front_room", _open_front_room, True)])
 def test_rooms_are_told_from_hollow_objects(tmp_path, name, mesh, interior):
     mesh().export(tmp_path / f"{name}.obj")
-    up = "z" if name == "cup" else "y"
+    up = "z" if name in ("cup", "vase") else "y"
     scene = load_scene(scene_from_mesh(tmp_path / f"{name}.obj", tmp_path / f"{name}.xml", up=up))
     assert scene.interior is interior
 
@@ -271,6 +300,19 @@ def test_authoring_never_replaces_a_file_with_other_content(tmp_path, shared_dat
     assert np.allclose(extent[0][[0, 2, 1]], extent[1], atol=1e-4) and not np.allclose(extent[0], extent[1], atol=1e-2)
 
 
+def test_authored_again_a_scene_replaces_the_files_only_it_names(tmp_path, shared_data):
+    mesh = shared_data / "meshes" / "suzanne.obj"
+    scene_from_mesh(mesh, tmp_path / "s.xml")
+    z_up = scene_from_mesh(mesh, tmp_path / "s.xml", up="z")
+    assert 'value="suzanne.ply"' in z_up.read_text()
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["s.xml", "suzanne.ply"]  # no file left behind
+    # Once another scene names it too, it is kept.
+    turned = (tmp_path / "suzanne.ply").read_bytes()
+    scene_from_mesh(mesh, tmp_path / "t.xml", up="z")
+    scene_from_mesh(mesh, tmp_path / "t.xml")
+    assert (tmp_path / "suzanne.ply").read_bytes() == turned and "suzanne_scene.ply" in (tmp_path / "t.xml").read_text()
+
+
 @pytest.mark.parametrize("options", ["", "-s 1 1 1 "])  # trimesh reads the image only without options
 def test_a_meshs_material_texture_comes_before_an_image_named_like_it(tmp_path, shared_data, options):
     from PIL import Image
@@ -285,7 +327,7 @@ def test_a_meshs_material_texture_comes_before_an_image_named_like_it(tmp_path, 
     # The material's own file, copied as it is (not re-encoded).
     assert 'value="m_texture.jpg"' in xml.read_text()
     assert (tmp_path / "out" / "m_texture.jpg").read_bytes() == (tmp_path / "tex" / "diffuse.jpg").read_bytes()
-    # Without a material, the image named like the mesh.
-    (tmp_path / "m.mtl").write_text("newmtl mat\nKd 1 1 1\n")
+    # Without a material's image (a blank map_Kd names none), the image named like the mesh.
+    (tmp_path / "m.mtl").write_bytes(b"newmtl mat\nKd 1 1 1\nmap_Kd  \r\n")
     xml = scene_from_mesh(obj, tmp_path / "out2" / "m.xml")
     assert (tmp_path / "out2" / "m_texture.png").read_bytes() == (tmp_path / "m.png").read_bytes()

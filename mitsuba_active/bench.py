@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import signal
 import tempfile
 import threading
@@ -388,6 +389,8 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                 if not xml.is_file():  # never authored: no run in the folder was made from it
                     continue
                 sc = next(sc for sc in suite.scenes if sc.name == name)
+                # Into a copy of the scene's folder: the names of the files it writes depend on those there.
+                shutil.copytree(xml.parent, Path(scratch) / name, symlinks=True)
                 now = Path(scratch) / name / xml.name
                 _author_suite_scene(sc, now, [j for j in jobs if j.scene == name])
                 hashes[str(xml)] = content_hash(now)
@@ -395,8 +398,7 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
         hashes[xml] = content_hash(Path(xml)) if Path(xml).is_file() else None
     for job in jobs:
         job.content_hash = hashes[job.scene_xml]
-    if author:
-        _refuse_other_runs(jobs)
+    _refuse_other_runs(jobs)  # --report-only too: it would report a mix, or leave runs out unsaid
     return jobs
 
 

@@ -337,16 +337,44 @@ def test_a_suite_folder_with_stale_or_damaged_runs_is_refused_before_anything_ru
         with pytest.raises(UserError, match="the runs of scene 'ball' .* were made with another version of it"):
             run_suite(tiny_suite, out, "quick", planners=["even"], progress=False, report_only=report_only)
     tiny_suite.write_text(text)
-    # An edited xml scene, and a damaged record: refused before the new seed's runs start.
+    # Other settings, an edited xml scene, and a damaged record: refused before the new seed's runs start,
+    # and by --report-only, which would otherwise report a mix or leave runs out.
+    from mitsuba_active.bench import parse_overrides
+
     xml = tmp_path / "simple" / "scene.xml"
-    xml.write_text(xml.read_text().replace("0.9 0.9 0.0", "0.9 0.5 0.0"))
-    with pytest.raises(UserError, match="simple/even-seed0 holds a run of scene 'simple' made with another version"):
-        run_suite(tiny_suite, out, "quick", planners=["even"], seeds=[1, 0], progress=False)
-    shutil.copy(shared_data / "mitsuba/simple/scene.xml", xml)
-    (runs / "simple" / "even-seed0" / "run.json").write_text("{")
-    with pytest.raises(UserError, match="even-seed0/run.json is damaged .*; remove it to start over"):
-        run_suite(tiny_suite, out, "quick", planners=["even"], seeds=[1, 0], progress=False)
+    for report_only in (True, False):
+        with pytest.raises(UserError, match="even-seed0 holds a run with other settings"):
+            run_suite(tiny_suite, out, "quick", planners=["even"], seeds=[1, 0], progress=False,
+                      report_only=report_only, overrides=parse_overrides(["eval_steps=25"]))
+        xml.write_text(xml.read_text().replace("0.9 0.9 0.0", "0.9 0.5 0.0"))
+        with pytest.raises(UserError, match="simple/even-seed0 holds a run of scene 'simple' made with another"):
+            run_suite(tiny_suite, out, "quick", planners=["even"], seeds=[1, 0], progress=False,
+                      report_only=report_only)
+        shutil.copy(shared_data / "mitsuba/simple/scene.xml", xml)
+        record = runs / "simple" / "even-seed0" / "run.json"
+        kept = record.read_bytes()
+        record.write_text("{")
+        with pytest.raises(UserError, match="even-seed0/run.json is damaged .*; remove it to start over"):
+            run_suite(tiny_suite, out, "quick", planners=["even"], seeds=[1, 0], progress=False,
+                      report_only=report_only)
+        record.write_bytes(kept)
     assert not list(runs.glob("*/even-seed1"))
+
+
+def test_a_suite_scene_authored_anew_keeps_its_file_names_and_reports(tiny_suite, tmp_path):
+    """Edited, with its runs removed, a mesh scene is authored over its own old files, so that
+    --report-only, which authors it into a copy of its folder, finds the runs' scene."""
+    import shutil
+
+    out = tmp_path / "out"
+    run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False)
+    tiny_suite.write_text(tiny_suite.read_text().replace('mesh = "ball.ply"', 'mesh = "ball.ply"\nup = "z"'))
+    shutil.rmtree(out / "runs")
+    run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False)
+    assert sorted(f.name for f in (out / "scenes" / "ball").iterdir()) == ["ball.ply", "ball.xml"]
+    summary = run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False,
+                        report_only=True)
+    assert len(summary["cells"]) == 1
 
 
 def test_a_suite_scene_that_is_no_xml_file_is_refused(tmp_path, shared_data):

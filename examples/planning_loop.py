@@ -1,8 +1,9 @@
 """Drive the planning loop yourself, on a scene built in Python.
 
 The scene is a Mitsuba scene dict (no XML file): two spheres and a cube
-under an environment light. The loop is what ``mitsuba-active plan`` runs,
-written out with the library's pieces: the gymnasium environment captures
+under an environment light. The loop is the one ``mitsuba-active plan`` runs,
+written out with the library's pieces and a simpler training schedule (a
+fixed number of steps per captured view): the gymnasium environment captures
 views, an ensemble trains on them (each round continues from the last), the
 planner scores the candidates with it, and a fresh field trained on all
 captured views is scored on the held-out views.

@@ -364,6 +364,7 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                 jobs.append(Job(sc.name, planner.name, int(seed), str(xml), asdict(cfg),
                                 str(out_dir / "runs" / sc.name / f"{folder_name(planner.name)}-seed{seed}"),
                                 planner_digest=digests[planner.name]))
+    hashes = {}  # scene XML -> content hash
     if author:
         selected = [sc for sc in suite.scenes if any(j.scene == sc.name for j in jobs)]
         with _mitsuba_warnings_muted():  # its runs show them, once
@@ -376,12 +377,12 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
         try:
             for sc in selected:
                 if sc.name in meshes:
-                    _author_suite_scene(sc, meshes[sc.name], [j for j in jobs if j.scene == sc.name])
+                    xml = meshes[sc.name]
+                    hashes[str(xml)] = _author_suite_scene(sc, xml, [j for j in jobs if j.scene == sc.name])
         except BaseException:
             remove_new(out_dir, *added)
             raise
-    hashes = {}
-    if not author:
+    else:
         # A mesh scene as the suite would author it now, in a scratch folder (the suite's is
         # left as it is): runs of an edited mesh or options are refused, as a run of the suite would be.
         with tempfile.TemporaryDirectory() as scratch, _mitsuba_warnings_muted():
@@ -391,9 +392,8 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                 sc = next(sc for sc in suite.scenes if sc.name == name)
                 # Into a copy of the scene's folder: the names of the files it writes depend on those there.
                 shutil.copytree(xml.parent, Path(scratch) / name, symlinks=True)
-                now = Path(scratch) / name / xml.name
-                _author_suite_scene(sc, now, [j for j in jobs if j.scene == name])
-                hashes[str(xml)] = content_hash(now)
+                hashes[str(xml)] = _author_suite_scene(sc, Path(scratch) / name / xml.name,
+                                                       [j for j in jobs if j.scene == name])
     for xml in {j.scene_xml for j in jobs} - set(hashes):
         hashes[xml] = content_hash(Path(xml)) if Path(xml).is_file() else None
     for job in jobs:
@@ -429,11 +429,13 @@ def _recorded(job: Job) -> dict | None:
         return None
 
 
-def _author_suite_scene(sc, xml: Path, jobs: list[Job]) -> None:
-    """Author a mesh scene of the suite, unless its runs in the suite folder
-    were made with another scene (edited options or mesh): then nothing is
-    replaced, and the suite is refused."""
+def _author_suite_scene(sc, xml: Path, jobs: list[Job]) -> str:
+    """Author a mesh scene of the suite and return its content hash, unless its
+    runs in the suite folder were made with another scene (edited options or
+    mesh): then nothing is replaced, and the suite is refused."""
     from .scene import scene_from_mesh
+
+    authored = []
 
     def same_scene(digest: str) -> None:
         stale = [j.out for j in jobs if (rec := _recorded(j)) and rec.get("content_hash") not in (None, digest)]
@@ -441,8 +443,10 @@ def _author_suite_scene(sc, xml: Path, jobs: list[Job]) -> None:
             raise UserError(f"the runs of scene '{sc.name}' in {Path(stale[0]).parent.parent.parent} were made with "
                             "another version of it (its options or mesh changed); use another --out, or undo "
                             "the change")
+        authored.append(digest)  # the files land as they were hashed
 
     scene_from_mesh(sc.path, xml, check=same_scene, **sc.scene_options)
+    return authored[0]
 
 
 def _refuse_other_runs(jobs: list[Job]) -> None:

@@ -425,10 +425,13 @@ def render_rays_dr(field, o, d, member=0):
     params = field.params() if hasattr(field, "params") and callable(field.params) else field
     # An index past the table reads another member's values or none. Inside a kernel being traced
     # (an integrator's sample()) per-ray values cannot be read: keeping them in range is the caller's part.
-    if isinstance(member, (int, np.integer)) or not dr.flag(dr.JitFlag.SymbolicScope):
-        member = int(member) if isinstance(member, (int, np.integer)) else mi.UInt32(member)
-        top = member if isinstance(member, int) else int(dr.max(member)[0]) if dr.width(member) else 0
-        if not 0 <= top < params.n_members:
-            raise UserError(f"member index {top} out of range: the field has {params.n_members} member(s)")
+    top = None
+    if isinstance(member, (int, np.integer)):
+        top = int(member)
+    elif not dr.flag(dr.JitFlag.SymbolicScope):
+        member = mi.UInt32(member)
+        top = int(dr.max(member)[0]) if dr.width(member) else None
+    if top is not None and not 0 <= top < params.n_members:
+        raise UserError(f"member index {top} out of range: the field has {params.n_members} member(s)")
     out = render_flat(params, mi.Point3f(o), mi.Vector3f(d), mi.UInt32(member))
     return out["rgb"], out["distance"], out["opacity"]

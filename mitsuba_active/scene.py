@@ -141,26 +141,29 @@ def _find_texture(mesh, mesh_path: Path, texture) -> tuple[np.ndarray | None, Pa
         _check_image(tex)
         return np.asarray(uv), tex
     # The mesh's material first, then an image named like the mesh beside it.
-    image, file = _embedded_image(mesh), _material_file(mesh_path)
+    image, (file, file_size) = _embedded_image(mesh), _material_file(mesh_path)
     if image is not None and min(image.size) <= 2:
         image = None  # trimesh's placeholder when there is none
-    if file is not None and (image is None or image.size == _image_size(file)):
+    if file is not None and (image is None or image.size == file_size):
         return np.asarray(uv), file  # not an atlas trimesh packed of several materials: the file as it is
     if image is not None:
         return np.asarray(uv), "embedded"
-    for pattern in TEXTURE_NAMES:
-        cand = mesh_path.with_name(pattern.format(stem=mesh_path.stem))
-        if cand.is_file():
-            return np.asarray(uv), cand
-    return None, None
+    named = next((cand for cand in _named_textures(mesh_path) if cand.is_file()), None)
+    return (None, None) if named is None else (np.asarray(uv), named)
 
 
-def _material_file(mesh_path: Path) -> Path | None:
+def _named_textures(mesh_path: Path) -> list[Path]:
+    """The images beside a mesh that are its texture by their names (:data:`TEXTURE_NAMES`), first first."""
+    return [mesh_path.with_name(pattern.format(stem=mesh_path.stem)) for pattern in TEXTURE_NAMES]
+
+
+def _material_file(mesh_path: Path) -> tuple[Path | None, tuple | None]:
     """The one image file an OBJ's materials name (``map_Kd``, which trimesh
-    misses when options precede the name); None for other formats, for
-    several images, or when Mitsuba cannot read it."""
+    misses when options precede the name) and its (width, height); ``(None,
+    None)`` for other formats, for several images, or when Mitsuba cannot
+    read it."""
     if mesh_path.suffix.lower() != ".obj":
-        return None
+        return None, None
     found = set()
     for lib in re.findall(rb"^mtllib[ \t]+(.+?)[ \t\r]*$", mesh_path.read_bytes(), re.M):
         lib = lib.decode("utf-8", "replace")
@@ -170,13 +173,12 @@ def _material_file(mesh_path: Path) -> Path | None:
                 found |= {(mtl.parent / name.decode("utf-8", "replace").split()[-1]).resolve()  # after options
                           for name in re.findall(rb"^[ \t]*map_Kd[ \t]+(\S.*?)[ \t\r]*$", text, re.M)}
     if len(found) != 1:
-        return None
+        return None, None
     (image,) = found
     try:
-        _check_image(image)  # a file Mitsuba reads
+        return image, _check_image(image)  # a file Mitsuba reads
     except UserError:
-        return None
-    return image
+        return None, None
 
 
 def _vertex_colors(mesh) -> np.ndarray | None:
@@ -194,12 +196,6 @@ def _vertex_colors(mesh) -> np.ndarray | None:
     return srgb_to_linear(colors[:, :3] / scale)
 
 
-def _image_size(path: Path) -> tuple[int, int]:
-    import mitsuba as mi
-
-    return tuple(mi.Bitmap(str(path)).size())
-
-
 def _embedded_image(mesh):
     """The texture image a mesh file carries (a PIL image), or None: an OBJ
     material's ``image``, or a glTF/GLB material's ``baseColorTexture``."""
@@ -208,14 +204,14 @@ def _embedded_image(mesh):
     return image if image is not None else getattr(material, "baseColorTexture", None)
 
 
-def _check_image(path: Path) -> None:
-    """UserError unless ``path`` is an image file that Mitsuba's bitmap texture reads."""
+def _check_image(path: Path) -> tuple[int, int]:
+    """The (width, height) of ``path``; UserError unless it is an image file that Mitsuba's bitmap texture reads."""
     import mitsuba as mi
 
     if not path.is_file():
         raise UserError(f"texture {path} is not a file")
     try:
-        mi.Bitmap(str(path))
+        return tuple(int(n) for n in mi.Bitmap(str(path)).size())
     except Exception:
         raise UserError(f"texture {path} is not an image Mitsuba can read (PNG, JPEG, EXR, HDR, ...)") from None
 
@@ -379,8 +375,7 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
         # Mitsuba's PLY reader takes v as given, OBJ/trimesh UVs have v up: flip.
         write_ply(staging / "mesh.ply", vertices, mesh.faces, None if uv is None else
                   np.stack([uv[:, 0], 1.0 - uv[:, 1]], axis=1), rgb)
-        keep = {mesh_path.resolve(), *(mesh_path.with_name(n.format(stem=mesh_path.stem)).resolve()
-                                       for n in TEXTURE_NAMES)}
+        keep = {mesh_path.resolve(), *(named.resolve() for named in _named_textures(mesh_path))}
         if texture not in (None, "embedded"):
             keep.add(Path(texture).resolve())
         replaceable = _replaceable(out_xml, keep)

@@ -136,12 +136,15 @@ def main():
 @click.option("-o", "--output", "out", required=True, type=click.Path(),
               help="Scene XML to write; the normalised mesh (PLY) and texture go beside it.")
 @click.option("--up", type=click.Choice(["y", "z"]), default="y", show_default=True, help="The mesh's up axis.")
-@click.option("--color", nargs=3, type=float, default=(0.6, 0.6, 0.6), show_default=True,
-              help="Diffuse RGB reflectance when the mesh has no texture or vertex colours.")
+@click.option("--color", nargs=3, type=float, default=None,
+              help="Diffuse RGB reflectance when the mesh has no texture or vertex colours. "
+                   "Default: its materials' colours (OBJ Kd, glTF baseColorFactor), else 0.6 0.6 0.6.")
 @click.option("--texture", type=click.Path(), default=None,
               help="Texture image (the mesh needs UVs). Default: the mesh's own, else its vertex colours, "
                    "if any.")
-@click.option("--no-texture", is_flag=True, help="Ignore the mesh's texture and vertex colours.")
+@click.option("--no-texture", is_flag=True,
+              help="Ignore the mesh's texture and vertex colours: one diffuse colour (--color, else its "
+                   "material's if it has just one).")
 @click.option("--env-radiance", type=float, default=1.0, show_default=True, help="Constant environment light.")
 @click.option("--sun", is_flag=True, help="Add a directional sun light.")
 @click.option("--point-lights", type=click.IntRange(0, 16), default=0, show_default=True)
@@ -153,7 +156,7 @@ def scene(mesh, out, up, color, texture, no_texture, env_radiance, sun, point_li
     """Author a Mitsuba scene XML around MESH (OBJ, PLY, STL, GLB, glTF, OFF)."""
     from .scene import scene_from_mesh
 
-    path = scene_from_mesh(mesh, out, up=up, color=tuple(color), texture=False if no_texture else texture,
+    path = scene_from_mesh(mesh, out, up=up, color=None if color is None else tuple(color), texture=False if no_texture else texture,
                            env_radiance=env_radiance, sun=sun, point_lights=point_lights, floor=floor,
                            two_sided=two_sided)
     click.echo(f"wrote {path}")

@@ -38,6 +38,8 @@ TEXTURE_NAMES = ("{stem}_texture.png", "{stem}_texture.jpg", "{stem}.png", "{ste
 
 #: Half width of the authored floor, in units of the normalised object (which spans 1).
 FLOOR_HALF_WIDTH = 0.8
+#: Diffuse reflectance of a mesh with no texture, vertex colours or material colour of its own.
+DEFAULT_COLOR = (0.6, 0.6, 0.6)
 #: Most point lights on the ring (as ``scene --point-lights`` allows), and the
 #: deepest path tracer (Mitsuba reads the depth as a 32-bit integer).
 MAX_POINT_LIGHTS = 16
@@ -51,11 +53,14 @@ class SceneOptions:
     Attributes:
         up: the mesh's up axis, ``"y"`` or ``"z"``; the scene is Y-up.
         color: diffuse RGB reflectance in [0, 1] when there is no texture
-            (or vertex colours).
+            (or vertex colours); ``None`` takes the colours the mesh's
+            materials give (an OBJ material's ``Kd``, a glTF material's
+            ``baseColorFactor``, both linear), else :data:`DEFAULT_COLOR`.
         texture: an image to use as the diffuse texture (needs UVs); ``None``
             looks for the mesh's own (its material, or ``<stem>_texture.png``
             beside it), else uses its vertex colours if it has them;
-            ``False`` never textures and ignores vertex colours.
+            ``False`` never textures and ignores vertex colours (and
+            material colours, unless there is just one).
         env_radiance: radiance of the constant environment light.
         sun: add a directional light from above.
         point_lights: number of point lights spread on a ring above the object.
@@ -67,7 +72,7 @@ class SceneOptions:
     """
 
     up: str = "y"
-    color: tuple = (0.6, 0.6, 0.6)
+    color: tuple | None = None
     texture: str | bool | None = None
     env_radiance: float = 1.0
     sun: bool = False
@@ -80,10 +85,11 @@ class SceneOptions:
         if self.up not in ("y", "z"):
             raise UserError(f"the up axis must be 'y' or 'z', got {self.up!r}")
         color = self.color
-        if isinstance(color, str) or not hasattr(color, "__len__") or len(color) != 3 \
-                or not all(is_number(c, finite=True) and 0.0 <= c <= 1.0 for c in color):
-            raise UserError(f"color must be three numbers in [0, 1], got {color!r}")
-        self.color = tuple(float(c) for c in color)
+        if color is not None:
+            if isinstance(color, str) or not hasattr(color, "__len__") or len(color) != 3 \
+                    or not all(is_number(c, finite=True) and 0.0 <= c <= 1.0 for c in color):
+                raise UserError(f"color must be three numbers in [0, 1], got {color!r}")
+            self.color = tuple(float(c) for c in color)
         if self.texture is not False and not isinstance(self.texture, (str, os.PathLike, type(None))):
             raise UserError(f"texture must be an image path, false (none) or unset (the mesh's own), "
                             f"got {self.texture!r}")
@@ -196,6 +202,49 @@ def _vertex_colors(mesh) -> np.ndarray | None:
     return srgb_to_linear(colors[:, :3] / scale)
 
 
+def _material_colors(mesh_path: Path, mesh) -> tuple[bool, np.ndarray | None]:
+    """What the file's materials say of the colour of ``mesh`` (as :func:`load_mesh` loaded it).
+
+    trimesh splits an OBJ or glTF file into one part per material, and
+    concatenates them into one mesh, packing the colours of several materials
+    into a texture atlas of its own. Returns ``(untextured, colors)``:
+    ``untextured`` is True when no part has a texture image (an image on the
+    mesh is then only that atlas); ``colors`` is (V, 3) linear RGB reflectance
+    per vertex, each part's vertices taking its material's colour (an OBJ
+    material's ``Kd``, a glTF material's ``baseColorFactor``), or None unless
+    every part has one.
+    """
+    import trimesh
+
+    suffix = mesh_path.suffix.lower()
+    if suffix not in (".obj", ".gltf", ".glb") or (
+            suffix == ".obj" and not re.search(rb"^mtllib[ \t]", mesh_path.read_bytes(), re.M)):
+        return False, None
+    try:
+        parts = trimesh.load(str(mesh_path), force="scene").dump()
+    except Exception:  # load_mesh read the file: nothing more to learn from it
+        return False, None
+    # The parts' vertices, in order, must be the mesh's, for the colours to land where they belong.
+    stacked = np.concatenate([part.vertices for part in parts]) if parts else np.zeros((0, 3))
+    if stacked.shape != np.shape(mesh.vertices) or not np.allclose(stacked, mesh.vertices):
+        return False, None
+    if any(_embedded_image(part) is not None for part in parts):
+        return False, None
+    colors = []
+    for part in parts:
+        material = getattr(part.visual, "material", None)
+        kd = (getattr(material, "kwargs", None) or {}).get("kd")  # the MTL's own numbers
+        factor = getattr(material, "baseColorFactor", None)  # glTF's linear factor, as bytes
+        if kd is not None and len(kd) >= 3:
+            color = np.asarray(kd[:3], np.float64)
+        elif factor is not None:
+            color = np.asarray(factor[:3], np.float64) / 255.0
+        else:
+            return True, None
+        colors.append(np.broadcast_to(np.clip(color, 0.0, 1.0), (len(part.vertices), 3)))
+    return True, np.concatenate(colors)
+
+
 def _embedded_image(mesh):
     """The texture image a mesh file carries (a PIL image), or None: an OBJ
     material's ``image``, or a glTF/GLB material's ``baseColorTexture``."""
@@ -285,10 +334,11 @@ def _landing_name(staged: Path, out_dir: Path, name_for, replaceable: set[Path])
     raise AssertionError("unreachable")
 
 
-def _scene_xml(mesh_file: str, texture_file: str | None, opts: SceneOptions, bottom: float,
+def _scene_xml(mesh_file: str, texture_file: str | None, color: tuple, opts: SceneOptions, bottom: float,
                vertex_colors: bool) -> str:
-    """The scene XML's text; ``bottom`` is the object's lowest height (y), where a floor goes."""
-    c = " ".join(f"{x:g}" for x in opts.color)
+    """The scene XML's text; ``color``: the object's diffuse reflectance where it has no texture or
+    vertex colours; ``bottom``: the object's lowest height (y), where a floor goes."""
+    c = " ".join(f"{x:g}" for x in color)
     if vertex_colors:
         bsdf = ('<bsdf type="diffuse"><texture type="mesh_attribute" name="reflectance">'
                 '<string name="name" value="vertex_color"/></texture></bsdf>')
@@ -360,6 +410,17 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
     vertices = normalise_vertices(mesh.vertices, opts.up)
     uv, texture = _find_texture(mesh, mesh_path, opts.texture)
     rgb = _vertex_colors(mesh) if texture is None and opts.texture is None else None
+    color = opts.color
+    untextured, material = (False, None) if rgb is not None or texture not in (None, "embedded") \
+        else _material_colors(mesh_path, mesh)
+    if untextured:
+        uv, texture = None, None  # an embedded image was trimesh's atlas of the materials' colours
+    if material is not None:
+        if color is None and np.ptp(material, axis=0).max() == 0:
+            color = tuple(float(c) for c in material[0])
+        elif color is None and opts.texture is None:
+            rgb = material  # one colour per part: as vertex colours
+    color = DEFAULT_COLOR if color is None else color
 
     out_dir = out_xml.parent if str(out_xml.parent) else Path(".")
     added = new_entries(out_dir)  # undone on failure
@@ -390,7 +451,7 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
             tex_file, there = _landing_name(staging / f"texture{suffix}", out_dir,
                                             lambda tag: f"{stem}{tag}_texture{suffix}", replaceable)
             unchanged |= {tex_file} if there else set()
-        text = _scene_xml(mesh_file, tex_file, opts, float(vertices[:, 1].min()), rgb is not None)
+        text = _scene_xml(mesh_file, tex_file, color, opts, float(vertices[:, 1].min()), rgb is not None)
         (staging / out_xml.name).write_text(text)
         try:  # validate before anything lands
             _load_mitsuba(staging / out_xml.name)

@@ -90,6 +90,53 @@ def test_a_meshs_vertex_colours_are_its_reflectance(tmp_path, shared_data):
     assert b > 2 * r
 
 
+def _two_material_obj(folder, kd_top="0.8 0.05 0.05", kd_bottom="0.05 0.05 0.8", extra_mtl=""):
+    """A unit cube in an OBJ whose top half (y > 0) and bottom half use two materials of their own colours."""
+    import trimesh
+
+    box = trimesh.creation.box(extents=(1, 1, 1))
+    top = box.triangles_center[:, 1] > 0.25
+    lines = ["mtllib box.mtl"] + [f"v {x} {y} {z}" for x, y, z in box.vertices]
+    for name, faces in (("top", box.faces[top]), ("bottom", box.faces[~top])):
+        lines += [f"usemtl {name}"] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    (folder / "box.obj").write_text("\n".join(lines) + "\n")
+    (folder / "box.mtl").write_text(f"newmtl top\nKd {kd_top}\n{extra_mtl}newmtl bottom\nKd {kd_bottom}\n")
+    return folder / "box.obj"
+
+
+def test_a_meshs_material_colours_are_its_reflectance(tmp_path):
+    """An OBJ material's Kd and a glTF material's baseColorFactor (both linear) colour an untextured mesh."""
+    import trimesh
+
+    from mitsuba_active.cameras import Camera, look_at
+
+    def pixels(mesh, name, at, **options):  # the centre pixel seen from each of ``at``
+        scene = load_scene(scene_from_mesh(mesh, tmp_path / name / "s.xml", **options))
+        return [np.array(mi.render(scene.mi_scene, sensor=Camera(look_at(p, [0, 0, 0]), fov=20.0, width=8,
+                                                                   height=8).sensor(4)))[4, 4] for p in at]
+
+    obj = _two_material_obj(tmp_path)
+    top, bottom = pixels(obj, "two", ([0, 3, 0.01], [0, -3, 0.01]))
+    assert top[0] > 4 * top[2] and bottom[2] > 4 * bottom[0]  # each half in its own material's colour
+    for colour in pixels(obj, "given", ([0, 3, 0.01], [0, -3, 0.01]), color=(0.1, 0.7, 0.1)):
+        assert colour[1] > 4 * colour[0]  # a colour given wins
+    assert all(np.allclose(c, c.mean(), rtol=0.05) for c in pixels(obj, "plain", ([0, 3, 0.01],), texture=False))
+
+    # One material: its colour, as the XML's plain reflectance, equal to the file's linear numbers.
+    one = tmp_path / "one"
+    one.mkdir()
+    obj = _two_material_obj(one, kd_bottom="0.8 0.05 0.05")
+    assert 'value="0.8 0.05 0.05"' in scene_from_mesh(obj, one / "s.xml").read_text()
+    (one / "box.mtl").write_text("newmtl top\nKs 0.5 0.5 0.5\nnewmtl bottom\nKs 0.2 0.2 0.2\n")  # no colours
+    assert 'value="0.6 0.6 0.6"' in scene_from_mesh(obj, one / "s.xml").read_text()
+
+    box = trimesh.creation.box()
+    box.visual = trimesh.visual.TextureVisuals(material=trimesh.visual.material.PBRMaterial(
+        baseColorFactor=[51, 204, 51, 255]))
+    box.export(tmp_path / "box.glb")
+    assert 'value="0.2 0.8 0.2"' in scene_from_mesh(tmp_path / "box.glb", tmp_path / "glb" / "s.xml").read_text()
+
+
 def test_two_sided_surfaces_reflect_from_behind(tmp_path):
     import trimesh
 

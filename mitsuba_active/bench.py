@@ -251,6 +251,8 @@ def parse_overrides(items) -> dict:
         table, dot, name = key.partition(".")
         if key in JOB_KEYS:
             raise UserError(f"--set: '{key}' names the runs; choose them with --{key}s")
+        if (name in out.get(table, {})) if dot else (key in out):  # which one was meant?
+            raise UserError(f"--set {key} is given twice; give it once")
         if dot and table in TABLE_KEYS and name:
             out.setdefault(table, {})[name] = value
         elif not dot and key in run_fields and key not in TABLE_KEYS:

@@ -362,7 +362,11 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
             free = scene.free_space(np.stack([c.position for c in cams]))
             cams = [c for c, ok in zip(cams, free) if ok]
             if len(cams) < n:
-                raise UserError(f"only {len(cams)} free camera positions found inside {scene.path}")
+                hint = ("ask for fewer views" if scene.interior else
+                        f"{scene.path} is an object, not a room: use --rig sphere or hemisphere")
+                raise UserError(f"the interior rig found room for {len(cams)} of the {n} "
+                                f"{'candidate' if off == 0.0 else 'held-out'} cameras inside {scene.path}, "
+                                f"the rest being inside solid objects; {hint}")
             return cams[:: max(1, len(cams) // n)][:n]
     else:
         fov = 40.0 if fov is None else fov

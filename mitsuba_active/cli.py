@@ -156,9 +156,11 @@ def scene(mesh, out, up, color, texture, no_texture, env_radiance, sun, point_li
     """Author a Mitsuba scene XML around MESH (OBJ, PLY, STL, GLB, glTF, OFF)."""
     from .scene import scene_from_mesh
 
-    path = scene_from_mesh(mesh, out, up=up, color=None if color is None else tuple(color), texture=False if no_texture else texture,
-                           env_radiance=env_radiance, sun=sun, point_lights=point_lights, floor=floor,
-                           two_sided=two_sided)
+    if texture is not None and no_texture:
+        raise UserError("give --texture FILE or --no-texture, not both")
+    path = scene_from_mesh(mesh, out, up=up, color=None if color is None else tuple(color),
+                           texture=False if no_texture else texture, env_radiance=env_radiance, sun=sun,
+                           point_lights=point_lights, floor=floor, two_sided=two_sided)
     click.echo(f"wrote {path}")
 
 
@@ -272,6 +274,8 @@ def _parse_options(items) -> dict:
         name, sep, text = item.partition("=")
         if not sep or not name.strip():
             raise UserError(f"--planner-option takes NAME=VALUE, got '{item}'")
+        if name.strip() in options:  # which one was meant?
+            raise UserError(f"--planner-option {name.strip()} is given twice; give it once")
         options[name.strip()] = setting_value(text)
     return options
 

@@ -115,17 +115,19 @@ def load_mesh(path) -> "trimesh.Trimesh":
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise UserError(f"unsupported mesh format '{path.suffix}' ({path}); use one of {', '.join(MESH_SUFFIXES)}")
     try:
-        mesh = trimesh.load(str(path), force="mesh")
-        # trimesh's processing drops non-finite vertices with their faces: look at the file's own.
-        finite = np.isfinite(trimesh.load(str(path), force="mesh", process=False).vertices).all()
+        # NumPy warns of the casts of non-finite vertices, which are refused below.
+        with np.errstate(invalid="ignore", over="ignore"):
+            mesh = trimesh.load(str(path), force="mesh")
+            # trimesh's processing drops non-finite vertices with their faces: look at the file's own.
+            finite = np.isfinite(trimesh.load(str(path), force="mesh", process=False).vertices).all()
     except Exception as exc:
         # A bare KeyError names only the missing key (a glTF buffer, say): say what it is.
         why = f"{type(exc).__name__}: {_one_line(exc)}" if isinstance(exc, (KeyError, IndexError)) else _one_line(exc)
         raise UserError(f"cannot read mesh {path}: it is damaged or not a {path.suffix} mesh ({why})") from None
+    if not finite or (isinstance(mesh, trimesh.Trimesh) and not np.isfinite(mesh.vertices).all()):
+        raise UserError(f"mesh {path} has non-finite vertex coordinates (NaN or infinite)")
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0 or len(mesh.vertices) == 0:
         raise UserError(f"mesh {path} has no triangles")
-    if not finite or not np.isfinite(mesh.vertices).all():
-        raise UserError(f"mesh {path} has non-finite vertex coordinates (NaN or infinite)")
     extent = float(np.max(mesh.extents))
     if not extent > 0 or mesh.area <= 1e-12 * extent ** 2:  # any size, as long as it has some area
         raise UserError(f"mesh {path} is degenerate (zero area or zero extent)")

@@ -50,11 +50,19 @@ def test_unreadable_mesh(tmp_path, out):
     _assert_nothing_written(out)
 
 
+def test_a_texture_and_no_texture_together_are_refused(tmp_path, out, shared_data):
+    code, text = run_cli("scene", shared_data / "meshes" / "spot.obj", "-o", out / "s.xml",
+                         "--texture", shared_data / "meshes" / "spot_texture.png", "--no-texture")
+    assert_one_line_error(code, text, "not both")
+    _assert_nothing_written(out)
+
+
 @pytest.mark.parametrize("content,needle", [
     ("# no geometry at all\n", "no triangles"),
     ("v 0 0 0\nv 0 0 0\nv 0 0 0\nf 1 2 3\n", "degenerate"),
     # trimesh drops a NaN vertex's faces on its own: the mesh would lose them unsaid.
     ("v 0 0 0\nv 1 0 0\nv 0 1 0\nv nan 0 1\nf 1 2 3\nf 1 2 4\n", "non-finite vertex coordinates"),
+    ("v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n", "non-finite vertex coordinates"),  # its one triangle, not none
 ])
 def test_empty_and_degenerate_meshes(tmp_path, out, content, needle):
     mesh = tmp_path / "m.obj"
@@ -620,12 +628,21 @@ def test_an_interrupt_inside_a_drjit_loop_is_one_line_and_exits_130(tmp_path):
     (["--planner", "fisher", "--ensemble", "3"], "trains 1 field"),
     (["--planner", "variational", "--ensemble", "2"], "trains 1 field"),
     (["--score", "sum", "--planner-option", "form=log"], "give rfe's score once"),
+    (["--planner-option", "form=sum", "--planner-option", "form=log"], "form is given twice"),
     (["--planner", "even", "--score", "sum"], "applies to the rfe planner only"),
 ])
 def test_plan_options_that_do_not_apply_are_refused(spot_xml, tmp_path, args, needle):
     out = tmp_path / "o"
     code, text = run_cli("plan", spot_xml, "--out", out, *args)
     assert_one_line_error(code, text, needle)
+    assert not out.exists()
+
+
+def test_the_interior_rig_inside_an_object_says_what_to_use(spot_xml, tmp_path):
+    out = tmp_path / "o"
+    code, text = run_cli("render", spot_xml, "-o", out, "--rig", "interior", "--candidates", "10")
+    assert_one_line_error(code, text, "of the 10 candidate cameras")
+    assert "is an object, not a room: use --rig sphere" in text
     assert not out.exists()
 
 

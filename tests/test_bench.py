@@ -135,7 +135,12 @@ def test_margins_pair_the_seeds_both_planners_have_and_ties_are_no_wins():
 
 
 #: The views of a run record made by hand (a record's parts are checked when it is read).
-NO_VIEWS = {"candidates": [], "heldout": [], "captured": []}
+def finished_views(config) -> dict:
+    """The views of a finished run record with ``config``'s budget: one candidate, captured budget times."""
+    from mitsuba_active.cameras import Camera, look_at
+
+    camera = Camera(look_at([0, 0, 3], [0, 0, 0]), fov=40.0, width=8, height=8).to_dict()
+    return {"candidates": [camera], "heldout": [], "captured": [0] * config["budget"]}
 
 TINY_SUITE = """
 name = "tiny"
@@ -430,11 +435,12 @@ def test_finished_runs_count_only_with_the_jobs_settings(tmp_path, shared_data):
     rec_path = tmp_path / "out" / "runs" / "simple" / "even-seed0" / "run.json"
     rec_path.parent.mkdir(parents=True)
     assert job.content_hash
-    rec = {"finished": True, "config": job.config, "content_hash": job.content_hash, "metrics": [], **NO_VIEWS}
+    rec = {"finished": True, "config": job.config, "content_hash": job.content_hash, "metrics": [],
+           **finished_views(job.config)}
     rec_path.write_text(json.dumps(rec))
     assert finished_record(job) is not None and collect([job]) == {"simple": {"even": [rec]}}
     # The same folder after the suite's settings changed: neither skipped nor reported.
-    rec_path.write_text(json.dumps({**rec, "config": {**job.config, "budget": 12}}))
+    rec_path.write_text(json.dumps({**rec, "config": {**job.config, "budget": 12}, **finished_views({"budget": 12})}))
     assert finished_record(job) is None and collect([job]) == {}
     # ... or after the scene changed (its files, not its settings).
     rec_path.write_text(json.dumps({**rec, "content_hash": "0" * 64}))
@@ -459,11 +465,12 @@ def test_finished_runs_match_with_a_relative_or_absolute_folder(tmp_path, shared
     assert rel.config["scene"] != absolute.config["scene"]  # the mesh scene's XML lives in the folder
     rec_path = tmp_path / "out" / "runs" / "ball" / "even-seed0" / "run.json"
     rec_path.parent.mkdir(parents=True)
-    rec_path.write_text(json.dumps({"finished": True, "config": rel.config, "metrics": [], **NO_VIEWS}))
+    rec_path.write_text(json.dumps({"finished": True, "config": rel.config, "metrics": [],
+                                    **finished_views(rel.config)}))
     assert finished_record(absolute) is not None
     # Another scene file is another setting.
     other = {**rel.config, "scene": "elsewhere/ball.xml"}
-    rec_path.write_text(json.dumps({"finished": True, "config": other, "metrics": [], **NO_VIEWS}))
+    rec_path.write_text(json.dumps({"finished": True, "config": other, "metrics": [], **finished_views(other)}))
     assert finished_record(absolute) is None
 
 
@@ -496,6 +503,15 @@ def test_bad_set_overrides(item, message):
 
     with pytest.raises(UserError, match=message):
         parse_overrides([item])
+
+
+@pytest.mark.parametrize("items", [["ensemble=2", "ensemble=4"], ["field.lr=0.1", "field.lr=0.2"]])
+def test_a_setting_given_twice_is_refused(items):
+    from mitsuba_active.bench import parse_overrides
+
+    with pytest.raises(UserError, match="given twice"):
+        parse_overrides(items)
+    assert parse_overrides(["field.lr=0.1", "planner_options.lr=0.2", "ensemble=2"])  # one each: fine
 
 
 def test_set_overrides_win_over_the_suite_and_bad_ones_write_nothing(tmp_path, shared_data):

@@ -89,6 +89,8 @@ class DatasetSource:
     Attributes:
         candidates, heldout: lists of :class:`Camera` (one resolution).
         candidate_frames, heldout_frames: the matching :class:`Frame` records.
+        candidate_files, heldout_files: their image files, relative to ``root``
+            (``"train/r_77.png"``): which of the dataset's frames each view is.
         bbox_min, bbox_max: (3,) float64 scene bounds in scene units.
         name: the dataset folder's name.
         content_hash: hex digest of the dataset's JSON files (None unless
@@ -96,10 +98,17 @@ class DatasetSource:
     """
 
     def __init__(self, candidate_frames, heldout_frames, bbox_min, bbox_max, name="dataset",
-                 white_background=True):
+                 white_background=True, root=None):
         self.candidate_frames, self.heldout_frames = list(candidate_frames), list(heldout_frames)
         self.candidates = [f.camera for f in self.candidate_frames]
         self.heldout = [f.camera for f in self.heldout_frames]
+        self.root = None if root is None else Path(root)
+
+        def file(frame):  # the name a user finds it by, '/' between folders as in the dataset's JSON
+            return Path(os.path.relpath(frame.image, self.root) if self.root else frame.image.name).as_posix()
+
+        self.candidate_files = [file(f) for f in self.candidate_frames]
+        self.heldout_files = [file(f) for f in self.heldout_frames]
         self.bbox_min = np.asarray(bbox_min, dtype=np.float64)
         self.bbox_max = np.asarray(bbox_max, dtype=np.float64)
         self.name = name
@@ -174,7 +183,7 @@ class DatasetSource:
                             "a held-out count of 0); tag some frames \"split\": \"test\"")
         if bounds is None:
             bounds = estimate_bounds([f.camera for f in train + test])
-        src = cls(train, test, bounds[0], bounds[1], name=name, white_background=white_background)
+        src = cls(train, test, bounds[0], bounds[1], name=name, white_background=white_background, root=root)
         # What the frames are (poses, image and depth file names), wherever
         # the dataset lies and whichever of its names it was opened by.
         digest = hashlib.sha256()

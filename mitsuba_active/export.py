@@ -78,8 +78,10 @@ def export_transforms(run_dir, out_dir=None) -> Path:
                     kc = cam.intrinsics()
                     frame.update(camera_angle_x=math.radians(cam.fov), fl_x=kc[0, 0], fl_y=kc[1, 1], cx=kc[0, 2],
                                  cy=kc[1, 2])
-                frames.append({**frame, "candidate": int(index),
-                               "transform_matrix": mitsuba_to_opengl(cam.to_world).tolist()})
+                frame["candidate"] = int(index)
+                if rec.get("candidate_files"):  # a dataset's run: the frame of the dataset this view is
+                    frame["source_file_path"] = rec["candidate_files"][index]
+                frames.append({**frame, "transform_matrix": mitsuba_to_opengl(cam.to_world).tolist()})
             path = out / "transforms.json"
             earlier = _exported_files(path)
             stage("transforms.json").write_text(json.dumps(_transforms(rec, ref, distances, frames), indent=1))

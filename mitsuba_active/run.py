@@ -305,7 +305,8 @@ RECORD_PARTS = {"config": dict, "candidates": list, "heldout": list, "captured":
                 "finished": bool,
                 # ---
                 "rounds": list, "versions": dict, "rng_state": dict, "planner_options": dict, "distances": bool,
-                "bbox": list, "budget_changes": list, "resumed_with": list, "ensemble_file": str}
+                "bbox": list, "budget_changes": list, "resumed_with": list, "ensemble_file": str,
+                "candidate_files": list, "heldout_files": list}
 REQUIRED_PARTS = ("config", "candidates", "heldout", "captured", "metrics", "finished")
 
 
@@ -351,9 +352,22 @@ def read_record(path) -> dict:
                 Camera.from_dict(cam)
         except UserError as exc:
             raise damaged(f"one of its {key}: {exc}") from None
+    for key, cams in (("candidate_files", "candidates"), ("heldout_files", "heldout")):
+        files = rec.get(key)
+        if files is not None and not (len(files) == len(rec[cams]) and all(isinstance(f, str) for f in files)):
+            raise damaged(f"its {key} are not the file names of its {len(rec[cams])} {cams}")
     n = len(rec["candidates"])
     if not all(is_whole(i) and 0 <= i < n for i in rec["captured"]):
         raise damaged(f"its captured views are not indices of its {n} candidates")
+    # Its views on disk are the captured ones in order: a list edited by hand would pair them with other poses.
+    captured, budget = rec["captured"], rec["config"].get("budget")
+    if rec["finished"] and is_whole(budget) and len(captured) != budget:
+        raise damaged(f"it is finished with {len(captured)} captured views, but its budget is {budget}")
+    for r in rec.get("rounds", ()):
+        views, picks = (r.get("views"), r.get("picks")) if isinstance(r, dict) else (None, None)
+        if not (isinstance(picks, list) and is_whole(views) and len(picks) <= views <= len(captured)
+                and captured[views - len(picks):views] == picks):
+            raise damaged("its rounds did not pick the views it lists as captured")
     for m in rec["metrics"]:
         if not (isinstance(m, dict) and is_whole(m.get("views")) and is_number(m.get("psnr"))
                 and all(m.get(k) is None or is_number(m[k]) for k in ("ssim", "distance_error", "fit_psnr"))):
@@ -682,10 +696,17 @@ class Run:
                                 np.asarray(self.source.bbox_max, float).tolist()],
                        "candidates": [c.to_dict() for c in self.source.candidates],
                        "heldout": [c.to_dict() for c in self.source.heldout],
+                       **self._frame_files(),
                        "content_hash": self._content_hash(),
                        "distances": self._has_distance(),
                        "captured": [], "rounds": [], "metrics": [], "finished": False}
         return False
+
+    def _frame_files(self) -> dict:
+        """A dataset's image files of the candidates and held-out views (which frame each is), else nothing."""
+        if getattr(self.source, "candidate_files", None) is None:
+            return {}
+        return {"candidate_files": list(self.source.candidate_files), "heldout_files": list(self.source.heldout_files)}
 
     def _has_distance(self) -> bool:
         return bool(getattr(self.source, "has_distance", True))
@@ -852,7 +873,7 @@ class Run:
                     self.log(f"note: the evaluation field fits its own {count} training views to only "
                              f"{metrics['fit_psnr']:.1f} dB after {self.cfg.eval_steps} steps: its held-out "
                              "scores say more about the training than about the views; raise eval_steps "
-                             f"(--eval-steps, default {RunConfig.eval_steps})")
+                             f"(RunConfig.eval_steps, plan --eval-steps; default {RunConfig.eval_steps})")
                 self._save_record()
 
     # -- results ------------------------------------------------------------
@@ -862,7 +883,9 @@ class Run:
         write_metrics_csv(self.out / "metrics.csv", self.record["metrics"])
         label = planner_label(self.cfg.planner)
         plot_metrics({label: self.record["metrics"]}, self.out, title=self.source.name)
-        contact_sheet([v.rgb for v in self.env.views], [f"#{n} cand {i}" for n, i in enumerate(self.env.captured)],
+        files = self.record.get("candidate_files")  # a dataset's: its frames are known by their files
+        names = [Path(files[i]).stem if files else f"cand {i}" for i in self.env.captured]
+        contact_sheet([v.rgb for v in self.env.views], [f"#{n} {name}" for n, name in enumerate(names)],
                       self.out / "chosen_views.png")
         scene = getattr(self.source, "scene", None)
         # A dataset has no scene: its cameras' own up vectors tell which way is up.

@@ -521,6 +521,13 @@ def test_a_run_of_a_dataset_without_depth_exports_no_distances(tmp_path, mic_dir
     meta = json.loads(export_transforms(tmp_path / "run", tmp_path / "export").read_text())
     assert len(meta["frames"]) == 3 and not any("distance_file_path" in f for f in meta["frames"])
     assert "distance_note" not in meta and not (tmp_path / "export" / "distance").exists()
+    # Which of the dataset's frames each view is: the file the dataset's JSON gives that pose.
+    poses = {str(mic_dir / (f["file_path"] + ".png")): np.asarray(f["transform_matrix"])
+             for f in json.loads((mic_dir / "transforms_train.json").read_text())["frames"]}
+    assert len(rec["candidate_files"]) == 6 and len(rec["heldout_files"]) == 2
+    for frame, index in zip(meta["frames"], rec["captured"]):
+        assert frame["source_file_path"] == rec["candidate_files"][index]
+        assert np.allclose(poses[str(mic_dir / frame["source_file_path"])], frame["transform_matrix"], atol=1e-5)
     monkeypatch.chdir(tmp_path)
     train_json = os.path.relpath(mic_dir / "transforms_train.json", tmp_path)
     again = Run(open_source(train_json, n_candidates=6, n_heldout=2, resolution=25),

@@ -243,8 +243,10 @@ def test_export_round_trips_poses(source, tmp_path):
     assert np.allclose(exported.bbox_min, source.bbox_min) and np.allclose(exported.bbox_max, source.bbox_max)
     # Exporting fewer views into the same folder leaves none of the earlier ones behind.
     (tmp_path / "ds" / "notes.txt").write_text("mine")
-    rec_path.write_text(json.dumps({**rec, "captured": rec["captured"][:2]}))
-    export_transforms(tmp_path / "r", tmp_path / "ds")
+    rec_path.write_text(json.dumps({**rec, "finished": False, "captured": rec["captured"][:2],
+                                    "rounds": [r for r in rec["rounds"] if r["views"] <= 2]}))
+    with pytest.warns(UserWarning, match="exporting the 2 of 4 views"):
+        export_transforms(tmp_path / "r", tmp_path / "ds")
     assert sorted(p.name for p in (tmp_path / "ds").rglob("view_*")) == [
         "view_000.exr", "view_000.png", "view_001.exr", "view_001.png"]
     assert (tmp_path / "ds" / "notes.txt").read_text() == "mine"
@@ -368,10 +370,19 @@ def test_resume_refuses_a_changed_scene(source, tmp_path, spot_xml):
     # A record edited by hand, naming a view the scene has no candidate for.
     not_indices = r"its captured views are not indices of its 10 candidates"
     not_a_list = "its captured is NoneType, not list"
-    for captured, why in (([0, 99], not_indices), ([0, "1"], not_indices), (None, not_a_list)):
+    edited = "its rounds did not pick the views it lists as captured"
+    for captured, why in (([0, 99], not_indices), ([0, "1"], not_indices), (None, not_a_list),
+                          (rec["captured"][:-1], edited), ([*rec["captured"][:-1], (rec["captured"][-1] + 1) % 10],
+                                                          edited)):
         (tmp_path / "r" / "run.json").write_text(json.dumps({**rec, "captured": captured}))
         with pytest.raises(UserError, match=rf"run.json is damaged \({why}\); remove it to start over"):
             _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])
+    # A finished run short of its budget would pair its views on disk with other poses.
+    finished = {**rec, "finished": True, "captured": rec["captured"][:-1], "rounds": rec["rounds"][:-1]}
+    (tmp_path / "r" / "run.json").write_text(json.dumps(finished))
+    with pytest.raises(UserError, match=r"run.json is damaged \(it is finished with 2 captured views, but its "
+                                        r"budget is 3\)"):
+        _run(source, tmp_path / "r", planner="even", budget=3, eval_views=[3])
     # An ensemble file outside the run folder: the run would load it, then remove it.
     (tmp_path / "victim.npz").write_bytes(b"keep me")
     not_own = r"its ensemble_file .* is not one of the run's ensemble_NNN.npz files"

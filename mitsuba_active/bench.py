@@ -251,11 +251,13 @@ def parse_overrides(items) -> dict:
         table, dot, name = key.partition(".")
         if key in JOB_KEYS:
             raise UserError(f"--set: '{key}' names the runs; choose them with --{key}s")
-        if (name in out.get(table, {})) if dot else (key in out):  # which one was meant?
-            raise UserError(f"--set {key} is given twice; give it once")
         if dot and table in TABLE_KEYS and name:
+            if name in out.get(table, {}):  # which one was meant?
+                raise UserError(f"--set {key} is given twice; give it once")
             out.setdefault(table, {})[name] = value
         elif not dot and key in run_fields and key not in TABLE_KEYS:
+            if key in out:
+                raise UserError(f"--set {key} is given twice; give it once")
             out[key] = value
         else:
             raise UserError(f"--set: unknown setting '{key}'; use a run setting "

@@ -55,7 +55,8 @@ class SceneOptions:
         color: diffuse RGB reflectance in [0, 1] when there is no texture
             (or vertex colours); ``None`` takes the colours the mesh's
             materials give (an OBJ material's ``Kd``, a glTF material's
-            ``baseColorFactor``, both linear), else :data:`DEFAULT_COLOR`.
+            ``baseColorFactor``, both linear), else :data:`DEFAULT_COLOR`
+            (also for a part whose material gives none).
         texture: an image to use as the diffuse texture (needs UVs); ``None``
             looks for the mesh's own (its material, or ``<stem>_texture.png``
             beside it), else uses its vertex colours if it has them;
@@ -204,47 +205,58 @@ def _vertex_colors(mesh) -> np.ndarray | None:
     return srgb_to_linear(colors[:, :3] / scale)
 
 
-def _material_colors(mesh_path: Path, mesh) -> tuple[bool, np.ndarray | None]:
-    """What the file's materials say of the colour of ``mesh`` (as :func:`load_mesh` loaded it).
+def _material_parts(mesh_path: Path, mesh) -> list | None:
+    """The parts of an OBJ or glTF file, one per material (trimesh meshes), whose
+    vertices, in order, are those of ``mesh`` (as :func:`load_mesh` loaded it);
+    None for other files, an OBJ without materials, or parts that are not the mesh's.
 
-    trimesh splits an OBJ or glTF file into one part per material, and
-    concatenates them into one mesh, packing the colours of several materials
-    into a texture atlas of its own. Returns ``(untextured, colors)``:
-    ``untextured`` is True when no part has a texture image (an image on the
-    mesh is then only that atlas); ``colors`` is (V, 3) linear RGB reflectance
-    per vertex, each part's vertices taking its material's colour (an OBJ
-    material's ``Kd``, a glTF material's ``baseColorFactor``), or None unless
-    every part has one.
+    trimesh concatenates the parts into one mesh, packing the colours of several
+    materials into a texture atlas of its own and pointing their UVs into it: the
+    parts keep each material and the file's own UVs.
     """
     import trimesh
 
     suffix = mesh_path.suffix.lower()
     if suffix not in (".obj", ".gltf", ".glb") or (
             suffix == ".obj" and not re.search(rb"^mtllib[ \t]", mesh_path.read_bytes(), re.M)):
-        return False, None
+        return None
     try:
         parts = trimesh.load(str(mesh_path), force="scene").dump()
     except Exception:  # load_mesh read the file: nothing more to learn from it
-        return False, None
-    # The parts' vertices, in order, must be the mesh's, for the colours to land where they belong.
+        return None
+    # The parts' vertices, in order, must be the mesh's, for what they carry to land where it belongs.
     stacked = np.concatenate([part.vertices for part in parts]) if parts else np.zeros((0, 3))
     if stacked.shape != np.shape(mesh.vertices) or not np.allclose(stacked, mesh.vertices):
-        return False, None
-    if any(_embedded_image(part) is not None for part in parts):
-        return False, None
-    colors = []
+        return None
+    return parts
+
+
+def _part_uv(parts) -> np.ndarray | None:
+    """(V, 2) the parts' own texture coordinates, or None unless every part has them."""
+    uvs = [getattr(part.visual, "uv", None) for part in parts]
+    if not all(uv is not None and len(uv) == len(part.vertices) for uv, part in zip(uvs, parts)):
+        return None
+    return np.concatenate([np.asarray(uv, np.float64) for uv in uvs])
+
+
+def _material_colors(parts, fallback) -> np.ndarray | None:
+    """(V, 3) linear RGB reflectance of each vertex of the parts: their
+    material's colour (an OBJ material's ``Kd``, a glTF material's
+    ``baseColorFactor``), ``fallback`` for a part whose material gives none;
+    None when no part's does."""
+    colors, found = [], False
     for part in parts:
         material = getattr(part.visual, "material", None)
         kd = (getattr(material, "kwargs", None) or {}).get("kd")  # the MTL's own numbers
         factor = getattr(material, "baseColorFactor", None)  # glTF's linear factor, as bytes
-        if kd is not None and len(kd) >= 3:
-            color = np.asarray(kd[:3], np.float64)
+        color = fallback
+        if kd is not None and len(kd) >= 3 and np.isfinite(np.asarray(kd[:3], np.float64)).all():
+            color = np.clip(np.asarray(kd[:3], np.float64), 0.0, 1.0)
         elif factor is not None:
             color = np.asarray(factor[:3], np.float64) / 255.0
-        else:
-            return True, None
-        colors.append(np.broadcast_to(np.clip(color, 0.0, 1.0), (len(part.vertices), 3)))
-    return True, np.concatenate(colors)
+        found |= color is not fallback
+        colors.append(np.broadcast_to(color, (len(part.vertices), 3)))
+    return np.concatenate(colors) if found else None
 
 
 def _embedded_image(mesh):
@@ -413,15 +425,18 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
     uv, texture = _find_texture(mesh, mesh_path, opts.texture)
     rgb = _vertex_colors(mesh) if texture is None and opts.texture is None else None
     color = opts.color
-    untextured, material = (False, None) if rgb is not None or texture not in (None, "embedded") \
-        else _material_colors(mesh_path, mesh)
-    if untextured:
-        uv, texture = None, None  # an embedded image was trimesh's atlas of the materials' colours
-    if material is not None:
-        if color is None and np.ptp(material, axis=0).max() == 0:
-            color = tuple(float(c) for c in material[0])
-        elif color is None and opts.texture is None:
-            rgb = material  # one colour per part: as vertex colours
+    parts = _material_parts(mesh_path, mesh) if rgb is None and texture in (None, "embedded") else None
+    if parts is not None and all(_embedded_image(part) is None for part in parts):
+        if texture == "embedded":  # only trimesh's atlas of the materials' colours: an image named like the mesh
+            named = next((cand for cand in _named_textures(mesh_path) if cand.is_file()), None)
+            part_uv = _part_uv(parts) if named is not None else None
+            uv, texture = (None, None) if part_uv is None else (part_uv, named)
+        material = _material_colors(parts, DEFAULT_COLOR if color is None else color)
+        if texture is None and color is None and material is not None:
+            if np.ptp(material, axis=0).max() == 0:
+                color = tuple(float(c) for c in material[0])
+            elif opts.texture is None:
+                rgb = material  # one colour per part: as vertex colours
     color = DEFAULT_COLOR if color is None else color
 
     out_dir = out_xml.parent if str(out_xml.parent) else Path(".")

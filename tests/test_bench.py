@@ -512,6 +512,9 @@ def test_a_setting_given_twice_is_refused(items):
     with pytest.raises(UserError, match="given twice"):
         parse_overrides(items)
     assert parse_overrides(["field.lr=0.1", "planner_options.lr=0.2", "ensemble=2"])  # one each: fine
+    for first in ("budget=3", "rig=interior"):  # a setting, then a table entry under its name
+        with pytest.raises(UserError, match="unknown setting"):
+            parse_overrides([first, first.split("=")[0] + ".x=1"])
 
 
 def test_set_overrides_win_over_the_suite_and_bad_ones_write_nothing(tmp_path, shared_data):

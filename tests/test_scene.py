@@ -90,17 +90,20 @@ def test_a_meshs_vertex_colours_are_its_reflectance(tmp_path, shared_data):
     assert b > 2 * r
 
 
-def _two_material_obj(folder, kd_top="0.8 0.05 0.05", kd_bottom="0.05 0.05 0.8", extra_mtl=""):
-    """A unit cube in an OBJ whose top half (y > 0) and bottom half use two materials of their own colours."""
+def _two_material_obj(folder, kd_top="0.8 0.05 0.05", kd_bottom="0.05 0.05 0.8", uv=False):
+    """A unit cube in an OBJ whose top half (y > 0) and bottom half use two materials of their own colours
+    (with texture coordinates if ``uv``)."""
     import trimesh
 
     box = trimesh.creation.box(extents=(1, 1, 1))
     top = box.triangles_center[:, 1] > 0.25
     lines = ["mtllib box.mtl"] + [f"v {x} {y} {z}" for x, y, z in box.vertices]
+    lines += [f"vt {0.5 + 0.4 * x} {0.5 + 0.4 * z}" for x, _, z in box.vertices] if uv else []
     for name, faces in (("top", box.faces[top]), ("bottom", box.faces[~top])):
-        lines += [f"usemtl {name}"] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+        lines += [f"usemtl {name}"] + [" ".join(["f"] + [f"{i + 1}/{i + 1}" if uv else f"{i + 1}" for i in face])
+                                       for face in faces]
     (folder / "box.obj").write_text("\n".join(lines) + "\n")
-    (folder / "box.mtl").write_text(f"newmtl top\nKd {kd_top}\n{extra_mtl}newmtl bottom\nKd {kd_bottom}\n")
+    (folder / "box.mtl").write_text(f"newmtl top\nKd {kd_top}\nnewmtl bottom\nKd {kd_bottom}\n")
     return folder / "box.obj"
 
 
@@ -129,6 +132,23 @@ def test_a_meshs_material_colours_are_its_reflectance(tmp_path):
     assert 'value="0.8 0.05 0.05"' in scene_from_mesh(obj, one / "s.xml").read_text()
     (one / "box.mtl").write_text("newmtl top\nKs 0.5 0.5 0.5\nnewmtl bottom\nKs 0.2 0.2 0.2\n")  # no colours
     assert 'value="0.6 0.6 0.6"' in scene_from_mesh(obj, one / "s.xml").read_text()
+
+    # A part whose material names no colour (none, or not a number) takes the default; the others keep theirs.
+    for name, kd_top in (("nan", "nan nan nan"), ("none", "")):  # a bare "Kd": trimesh reads no colour
+        (tmp_path / name).mkdir()
+        top, bottom = pixels(_two_material_obj(tmp_path / name, kd_top=kd_top), f"{name}_out",
+                             ([0, 3, 0.01], [0, -3, 0.01]))
+        assert np.isfinite(top).all() and np.allclose(top, top.mean(), rtol=0.05) and bottom[2] > 4 * bottom[0]
+    # With several materials, an image named like the mesh is its texture (on the file's own UVs), as with one.
+    from PIL import Image
+
+    textured = tmp_path / "textured"
+    textured.mkdir()
+    Image.new("RGB", (8, 8), (30, 200, 30)).save(textured / "box_texture.png")
+    obj = _two_material_obj(textured, uv=True)
+    assert "box_texture.png" in scene_from_mesh(obj, textured / "out" / "s.xml").read_text()
+    for colour in pixels(obj, "textured_out", ([0, 3, 0.01], [0, -3, 0.01])):
+        assert colour[1] > 4 * colour[0]
 
     box = trimesh.creation.box()
     box.visual = trimesh.visual.TextureVisuals(material=trimesh.visual.material.PBRMaterial(

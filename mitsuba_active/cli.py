@@ -272,11 +272,12 @@ def _parse_options(items) -> dict:
     options = {}
     for item in items:
         name, sep, text = item.partition("=")
-        if not sep or not name.strip():
+        name = name.strip()
+        if not sep or not name:
             raise UserError(f"--planner-option takes NAME=VALUE, got '{item}'")
-        if name.strip() in options:  # which one was meant?
-            raise UserError(f"--planner-option {name.strip()} is given twice; give it once")
-        options[name.strip()] = setting_value(text)
+        if name in options:  # which one was meant?
+            raise UserError(f"--planner-option {name} is given twice; give it once")
+        options[name] = setting_value(text)
     return options
 
 

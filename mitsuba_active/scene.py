@@ -157,13 +157,18 @@ def _find_texture(mesh, mesh_path: Path, texture) -> tuple[np.ndarray | None, Pa
         return np.asarray(uv), file  # not an atlas trimesh packed of several materials: the file as it is
     if image is not None:
         return np.asarray(uv), "embedded"
-    named = next((cand for cand in _named_textures(mesh_path) if cand.is_file()), None)
+    named = _named_texture(mesh_path)
     return (None, None) if named is None else (np.asarray(uv), named)
 
 
 def _named_textures(mesh_path: Path) -> list[Path]:
     """The images beside a mesh that are its texture by their names (:data:`TEXTURE_NAMES`), first first."""
     return [mesh_path.with_name(pattern.format(stem=mesh_path.stem)) for pattern in TEXTURE_NAMES]
+
+
+def _named_texture(mesh_path: Path) -> Path | None:
+    """The first of :func:`_named_textures` that is a file, or None."""
+    return next((cand for cand in _named_textures(mesh_path) if cand.is_file()), None)
 
 
 def _material_file(mesh_path: Path) -> tuple[Path | None, tuple | None]:
@@ -239,11 +244,12 @@ def _part_uv(parts) -> np.ndarray | None:
     return np.concatenate([np.asarray(uv, np.float64) for uv in uvs])
 
 
-def _material_colors(parts, fallback) -> np.ndarray | None:
+def _material_colors(parts) -> np.ndarray | None:
     """(V, 3) linear RGB reflectance of each vertex of the parts: their
     material's colour (an OBJ material's ``Kd``, a glTF material's
-    ``baseColorFactor``), ``fallback`` for a part whose material gives none;
-    None when no part's does."""
+    ``baseColorFactor``), :data:`DEFAULT_COLOR` for a part whose material
+    gives none; None when no part's does."""
+    fallback = np.asarray(DEFAULT_COLOR, np.float64)
     colors, found = [], False
     for part in parts:
         material = getattr(part.visual, "material", None)
@@ -428,11 +434,11 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
     parts = _material_parts(mesh_path, mesh) if rgb is None and texture in (None, "embedded") else None
     if parts is not None and all(_embedded_image(part) is None for part in parts):
         if texture == "embedded":  # only trimesh's atlas of the materials' colours: an image named like the mesh
-            named = next((cand for cand in _named_textures(mesh_path) if cand.is_file()), None)
+            named = _named_texture(mesh_path)
             part_uv = _part_uv(parts) if named is not None else None
             uv, texture = (None, None) if part_uv is None else (part_uv, named)
-        material = _material_colors(parts, DEFAULT_COLOR if color is None else color)
-        if texture is None and color is None and material is not None:
+        material = _material_colors(parts) if texture is None and color is None else None
+        if material is not None:
             if np.ptp(material, axis=0).max() == 0:
                 color = tuple(float(c) for c in material[0])
             elif opts.texture is None:

@@ -414,9 +414,6 @@ def _plan(cfg, out: Path, quiet: bool, given=frozenset()) -> dict:
     if not isinstance(source, SceneSource):
         if "spp" in given:
             raise UserError("--spp applies to scenes; a dataset's images are as they were captured")
-        if cfg.distance_weight > 0 and not source.has_distance:
-            raise UserError(f"--distance-weight needs distances, and {source.name} has no depth maps "
-                            "(its frames give no depth_file_path or distance_file_path)")
         for name, flag, asked, kept, kind in (
                 ("n_candidates", "--candidates", cfg.candidates, len(source.candidates), "training"),
                 ("n_heldout", "--heldout", cfg.heldout, len(source.heldout), "held-out")):

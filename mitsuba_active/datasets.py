@@ -112,6 +112,8 @@ class DatasetSource:
         self.bbox_min = np.asarray(bbox_min, dtype=np.float64)
         self.bbox_max = np.asarray(bbox_max, dtype=np.float64)
         self.name = name
+        if not isinstance(white_background, (bool, np.bool_)):  # bool("false") would be True
+            raise UserError(f"white_background must be True or False, got {white_background!r}")
         self.white_background = bool(white_background)
         self._views: dict[int, View] = {}  # keyed by id(frame): frames may repeat across splits
         self.content_hash = None  # set by from_path: a digest of the dataset's JSON files
@@ -142,6 +144,8 @@ class DatasetSource:
                 raise UserError(f"{key} must be a whole number >= 0 (or None: all frames), got {count!r}")
         if n_candidates == 0:
             raise UserError("at least one candidate view is needed, got n_candidates=0")
+        if downscale is None and (not is_whole(resolution) or resolution < 1):
+            raise UserError(f"image resolution must be a positive whole number, got {resolution!r}")
         files, name, root = _locate(path)
         metas = [(f, _read_json(f)) for f in files]
         train, test = _split(metas, files)
@@ -165,9 +169,9 @@ class DatasetSource:
 
         if downscale is None:
             width = _full_size(train[0])[0]
-            downscale = max(1, round(width / int(resolution)))
-        if int(downscale) != downscale or int(downscale) < 1:
-            raise UserError(f"downscale must be a positive integer, got {downscale}")
+            downscale = max(1, round(width / resolution))
+        if not is_number(downscale, finite=True) or int(downscale) != downscale or int(downscale) < 1:
+            raise UserError(f"downscale must be a positive integer, got {downscale!r}")
         downscale = int(downscale)
         # One window size for every frame (views share one resolution): the
         # smallest frame's, so that per-frame principal points a fraction of

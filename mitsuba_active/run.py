@@ -469,6 +469,9 @@ def field_config(cfg: RunConfig, planner: bool = True):
 def source_field_config(source, cfg: RunConfig, planner: bool = True):
     """:func:`field_config`, also UserError when the source cannot train such a field."""
     config = field_config(cfg, planner)
+    if config.distance_weight > 0 and not getattr(source, "has_distance", True):
+        raise UserError(f"distance_weight (--distance-weight) needs distances, and {source.name} has no depth maps "
+                        "(its frames give no depth_file_path or distance_file_path)")
     if config.empty_weight > 0 and not isinstance(source, SceneSource):
         # A dataset's mask marks where the distance is known, not which rays hit nothing.
         raise UserError("the empty-ray loss (empty_weight) needs rendered ground truth: a dataset "
@@ -650,11 +653,13 @@ class Run:
             changed = conflicting_settings(rec, self._config_dict(), compare_scene=not by_content)
             if changed:
                 raise UserError(other_settings(self.out, changed, "choose another run folder (--out)"))
-            if ((by_content and rec["content_hash"] != self._content_hash())
-                    or rec.get("candidates") != [c.to_dict() for c in self.source.candidates]
-                    or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):
+            if by_content and rec["content_hash"] != self._content_hash():
                 raise UserError(f"{self.out} holds a run of a scene or dataset that has changed since; "
                                 "choose another run folder (--out)")
+            if (rec.get("candidates") != [c.to_dict() for c in self.source.candidates]
+                    or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):
+                raise UserError(f"{self.out} holds a run whose candidate or held-out cameras are not the view "
+                                "source's; choose another run folder (--out)")
             captured = rec["captured"]
             if other_planner_code(rec, self.planner_digest):
                 raise UserError(f"{self.out} holds a run made with another version of the planner's code "
@@ -763,6 +768,9 @@ class Run:
             FolderInUse: another run is writing the folder now (nothing is touched).
             TrainingDiverged: a field's training diverged; once the folder holds
                 a record, the message says that resuming would diverge again.
+            UserError: the folder holds a run this one cannot go on from.
+            OSError: the folder cannot be made or written (a file in its
+                place, no permission, a full disk), as Python's file functions raise it.
         """
         self.out.mkdir(parents=True, exist_ok=True)
         with folder_lock(self.out):

@@ -140,7 +140,7 @@ def _find_texture(mesh, mesh_path: Path, texture) -> tuple[np.ndarray | None, Pa
     uv = getattr(mesh.visual, "uv", None)
     has_uv = uv is not None and len(uv) == len(mesh.vertices)
     if texture and not has_uv:
-        raise UserError(f"--texture needs texture coordinates, and {mesh_path} has none")
+        raise UserError(f"a texture (texture, --texture) needs texture coordinates, and {mesh_path} has none")
     if texture is False or not has_uv:
         return None, None
     if texture:
@@ -419,6 +419,11 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
     raises UserError to refuse the scene (a folder holding runs of another
     version of it), and then nothing is written or replaced.
     """
+    known = {f.name for f in dataclasses.fields(SceneOptions)}
+    unknown = sorted(set(kwargs) - known)
+    if unknown:
+        raise UserError(f"unknown scene option {', '.join(unknown)}; the options of SceneOptions are: "
+                        f"{', '.join(sorted(known))}")
     opts = dataclasses.replace(options or SceneOptions(), **kwargs)  # checked by __post_init__
     if opts.env_radiance == 0 and not opts.sun and opts.point_lights == 0:
         warnings.warn("the scene has no light (no environment, sun or point lights): every view renders black",
@@ -742,6 +747,9 @@ def scene_from_mitsuba(scene, name: str = "scene") -> Scene:
             raise UserError(f"Mitsuba cannot load the scene dict {name}: {_one_line(exc)}") from None
         given = f"a dict of a {type(scene).__name__} (its 'type' must be 'scene')"
     if not isinstance(scene, mi.Scene):
+        if type(scene).__name__ == "Scene" and type(scene).__module__.split(".")[0] == "mitsuba":
+            raise UserError(f"scene_from_mitsuba got a mitsuba.Scene of another Mitsuba variant; load it with "
+                            f"'{mi.variant()}' set, the variant mitsuba-active runs")
         raise UserError(f"scene_from_mitsuba takes a mitsuba.Scene or a scene dict, got {given}")
     return _describe(scene, Path(name), None)
 

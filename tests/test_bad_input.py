@@ -337,6 +337,14 @@ def test_scene_options_of_the_wrong_type(options, message, tmp_path, shared_data
         load_suite(suite)
 
 
+def test_a_misspelt_scene_option_is_named(tmp_path, shared_data):
+    from mitsuba_active.scene import scene_from_mesh
+
+    with pytest.raises(UserError, match="unknown scene option colour; the options of SceneOptions are: .*color"):
+        scene_from_mesh(shared_data / "meshes" / "suzanne.obj", tmp_path / "s" / "s.xml", colour=(1, 0, 0))
+    assert not (tmp_path / "s").exists()
+
+
 def test_a_path_depth_mitsuba_cannot_read_is_refused():
     from mitsuba_active.scene import SceneOptions
 
@@ -661,7 +669,7 @@ def test_a_dataset_refuses_spp_and_notes_missing_frames(shared_data, tmp_path):
     code, text = run_cli("plan", mic, "--spp", "4", "--out", tmp_path / "a")
     assert_one_line_error(code, text, "--spp applies to scenes")
     code, text = run_cli("plan", mic, "--distance-weight", "0.5", "--out", tmp_path / "a")
-    assert_one_line_error(code, text, "--distance-weight needs distances, and nerf_synthetic_mic has no depth maps")
+    assert_one_line_error(code, text, "(--distance-weight) needs distances, and nerf_synthetic_mic has no depth maps")
     assert not (tmp_path / "a").exists()
     code, text = run_cli("plan", mic, "--heldout", "500", "--planner", "even", "--budget", "2", "--eval-views", "2",
                          "--eval-steps", "5", "--resolution", "25", "--quiet", "--out", tmp_path / "b")

@@ -318,6 +318,15 @@ def test_the_empty_ray_loss_is_refused_on_a_dataset(tmp_path):
         make_ensemble(src, RunConfig(field={"empty_weight": 1.0}), 1, seed=0)
 
 
+def test_a_run_refuses_the_distance_loss_on_a_dataset_without_depth_maps(mic, mic_dir, tmp_path):
+    """Its loss would be zero on every ray while run.json recorded the weight."""
+    from mitsuba_active.run import Run, RunConfig
+
+    cfg = RunConfig(scene=str(mic_dir), downscale=32, candidates=100, heldout=25, budget=3, distance_weight=1.0)
+    with pytest.raises(UserError, match="needs distances, and nerf_synthetic_mic has no depth maps"):
+        Run(mic, cfg, tmp_path / "refused", progress=False)
+    assert not (tmp_path / "refused").exists()
+
 
 def test_a_run_refuses_a_dataset_its_config_does_not_describe(mic, mic_dir, tmp_path):
     """run.json records the config as how the run was made: a dataset opened
@@ -339,10 +348,16 @@ def test_a_run_refuses_a_dataset_its_config_does_not_describe(mic, mic_dir, tmp_
     assert not (tmp_path / "refused").exists()
     with pytest.raises(UserError, match="no scene given"):
         RunConfig().open_source()
-    for counts, message in ((dict(n_candidates=0), "at least one candidate view"),
-                            (dict(n_heldout=2.5), "n_heldout must be a whole number")):
+    for options, message in ((dict(n_candidates=0), "at least one candidate view"),
+                             (dict(n_heldout=2.5), "n_heldout must be a whole number"),
+                             (dict(downscale=float("nan")), "downscale must be a positive integer, got nan"),
+                             (dict(downscale=None, resolution=0), "resolution must be a positive whole number"),
+                             (dict(downscale=None, resolution=-5), "resolution must be a positive whole number"),
+                             (dict(white_background="false"), "white_background must be True or False, got 'false'")):
         with pytest.raises(UserError, match=message):
-            DatasetSource.from_path(mic_dir, downscale=32, **counts)
+            DatasetSource.from_path(mic_dir, **{"downscale": 32, **options})
+    with pytest.raises(UserError, match="resolution must be a positive whole number, got 0"):
+        RunConfig(scene=str(mic_dir), resolution=0).open_source()
 
 
 # -- errors -------------------------------------------------------------------------

@@ -198,6 +198,17 @@ def test_a_scene_built_in_python_that_is_no_scene_is_refused(scene, message):
         scene_from_mitsuba(scene, name="ball")
 
 
+def test_a_scene_of_another_variant_is_named_so():
+    import mitsuba as mi
+
+    from mitsuba_active.scene import scene_from_mitsuba
+
+    with mi.variant_context("scalar_rgb"):
+        scene = mi.load_dict(BALL_DICT)
+    with pytest.raises(UserError, match=f"a mitsuba.Scene of another Mitsuba variant; load it with '{mi.variant()}'"):
+        scene_from_mitsuba(scene, name="ball")
+
+
 def test_a_scene_dict_given_for_an_xml_says_how_to_read_it():
     from mitsuba_active.env import SceneSource
 

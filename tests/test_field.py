@@ -4,6 +4,9 @@ Everything runs on tiny grids and an analytic textured sphere so the file
 stays well under a minute on 2 CPU cores.
 """
 
+import json
+import re
+
 import numpy as np
 import pytest
 
@@ -318,6 +321,14 @@ def test_load_rejects_other_files(tmp_path):
         bad.write_bytes(data[:size])
         with pytest.raises(UserError, match="cannot read ensemble file"):
             Ensemble.load(bad)
+    # A hand-edited config names the key that is no option, and the file.
+    with np.load(good) as z:
+        saved = dict(z)
+    config = json.loads(str(saved["config"]))
+    config["nlevels"] = config.pop("n_levels")
+    np.savez(bad, **{**saved, "config": np.array(json.dumps(config))})
+    with pytest.raises(UserError, match=f"{re.escape(str(bad))}: its config has unknown field option nlevels"):
+        Ensemble.load(bad)
 
 
 def test_divergence_raises_user_error():

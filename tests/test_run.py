@@ -1,5 +1,6 @@
 """The acquisition loop: reproducibility, resume, outputs, export, and RFE's preference for the unseen."""
 
+import dataclasses
 import json
 import re
 
@@ -557,3 +558,14 @@ def test_a_run_says_once_when_its_evaluation_field_did_not_train_long_enough(sou
     assert "fit_psnr" in (tmp_path / "short" / "metrics.csv").read_text().splitlines()[0]
     trained, notes = run(tmp_path / "trained", 400)
     assert all(m["fit_psnr"] > MIN_FIT_PSNR for m in trained["metrics"]) and notes == []
+
+
+def test_a_run_folder_refuses_a_source_with_other_cameras(source, tmp_path):
+    """Same scene and settings, other cameras (a source with cameras of the caller's own): named as such."""
+    from mitsuba_active.env import SceneSource
+
+    _run(source, tmp_path / "run", planner="even", budget=2, eval_views=[2])
+    turned = [dataclasses.replace(c, fov=c.fov + 1.0) for c in source.candidates]
+    other = SceneSource(source.scene, turned, source.heldout, spp=TINY["spp"], cache_dir=False)
+    with pytest.raises(UserError, match="holds a run whose candidate or held-out cameras are not the view source's"):
+        _run(other, tmp_path / "run", planner="even", budget=2, eval_views=[2])

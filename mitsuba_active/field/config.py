@@ -206,5 +206,13 @@ class FieldConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "FieldConfig":
+        """The config a saved field records; UserError on a key that is no option."""
+        from ..errors import UserError
+
+        if not isinstance(d, dict):
+            raise UserError("its config is not a JSON object")
         known = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in known})
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise UserError(f"its config has unknown field option {', '.join(unknown)}")
+        return cls(**d)

@@ -134,11 +134,11 @@ def _ensemble_from(cls, z, path):
     if version != FORMAT_VERSION:
         raise UserError(f"{path}: unsupported field format_version {version} "
                         f"(this version reads {FORMAT_VERSION})")
-    cfg = FieldConfig.from_dict(json.loads(str(z["config"])))
     options = json.loads(str(z["options"])) if "options" in z else {}
     if not isinstance(options, dict):
         raise UserError(f"{path}: its options are not a JSON object")
     try:
+        cfg = FieldConfig.from_dict(json.loads(str(z["config"])))
         ens = kinds[kind](z["bbox_min"], z["bbox_max"], n_members=int(z["n_members"]),
                           config=cfg, seed=int(z["seed"]), **options)
     except UserError as exc:  # a hand-edited file: name it

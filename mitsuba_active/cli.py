@@ -19,7 +19,7 @@ import threading
 import warnings
 from pathlib import Path
 
-from .interrupts import interruptible_imports, interrupts_deferred
+from .interrupts import interruptible_imports, interrupts_deferred, sigterm_as_interrupt
 
 with interruptible_imports():  # click and numpy load here, after the package's own imports
     import click
@@ -29,14 +29,6 @@ with interruptible_imports():  # click and numpy load here, after the package's 
     from .errors import UserError
     from .imageio_utils import folder_name, new_entries, remove_new
     from .scenes import BUNDLED_SCENE
-
-
-def _stop(signum, frame):
-    # SIGTERM (timeout, kill, a job scheduler) stops a command as Ctrl-C does:
-    # through its clean-up, not halfway through writing its output; a second
-    # one does not interrupt that clean-up.
-    signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    raise KeyboardInterrupt
 
 
 def _os_error_line(exc: OSError) -> str:
@@ -79,7 +71,7 @@ def _close_progress_bars() -> None:
 def _caused_by_interrupt(exc) -> bool:
     """Whether ``exc`` is, or wraps, a KeyboardInterrupt: Dr.Jit's loops and
     custom operations re-raise what their Python bodies raised (Ctrl-C, or
-    SIGTERM through :func:`_stop`) as a RuntimeError caused by it."""
+    SIGTERM through :func:`~.interrupts.sigterm_as_interrupt`) as a RuntimeError caused by it."""
     seen = set()
     while exc is not None and id(exc) not in seen:
         if isinstance(exc, KeyboardInterrupt):
@@ -94,7 +86,7 @@ def _one_line_errors(fn):
     def wrapper(*args, **kwargs):
         # Signal handlers belong to the main thread (a command may be invoked from another).
         handled = threading.current_thread() is threading.main_thread()
-        previous = signal.signal(signal.SIGTERM, _stop) if handled else None
+        previous = signal.signal(signal.SIGTERM, sigterm_as_interrupt) if handled else None
         try:
             with warnings.catch_warnings(), mitsuba_log_as_warnings():
                 warnings.showwarning = show_warning

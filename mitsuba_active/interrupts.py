@@ -19,23 +19,37 @@ import sys
 import threading
 
 
+def sigterm_as_interrupt(signum, frame):
+    """SIGTERM handler of the command line: ``kill``, ``timeout`` or a job
+    scheduler stops a command as Ctrl-C does, through its clean-up rather than
+    halfway through writing its output; a second SIGTERM does not interrupt
+    that clean-up."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    raise KeyboardInterrupt
+
+
 @contextlib.contextmanager
 def interrupts_deferred():
     """Run the block with SIGINT held back; raise ``KeyboardInterrupt`` after it if one came.
 
     Only in the main thread, and only while Python's own SIGINT handler is set
-    (a caller's handler is left alone).
+    (a caller's handler is left alone); SIGTERM likewise while its handler is
+    :func:`sigterm_as_interrupt`.
     """
-    if (threading.current_thread() is not threading.main_thread()
-            or signal.getsignal(signal.SIGINT) is not signal.default_int_handler):
+    held = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: sigterm_as_interrupt}
+    held = {signum: handler for signum, handler in held.items() if signal.getsignal(signum) is handler}
+    if threading.current_thread() is not threading.main_thread() or not held:
         yield
         return
     caught = []
-    signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    for signum in held:
+        signal.signal(signum, lambda signum, frame: caught.append(signum))
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        for signum, handler in held.items():
+            # A SIGTERM that came is answered as its handler would: any later one is ignored.
+            signal.signal(signum, signal.SIG_IGN if signum == signal.SIGTERM and signum in caught else handler)
     if caught:
         raise KeyboardInterrupt
 

@@ -840,6 +840,29 @@ def test_ctrl_c_while_libraries_load_is_one_line(tmp_path, module, importer):
     assert proc.stdout == ""
 
 
+def test_sigterm_while_the_commands_libraries_load_stops_the_command(tmp_path, shared_data):
+    """A SIGTERM that lands while a command loads its libraries (trimesh's imports
+    swallow an interrupt raised inside them) stops it as Ctrl-C does: one line,
+    exit 130, nothing written."""
+    out = tmp_path / "s" / "spot.xml"
+    script = (
+        "import os, signal, sys\n\n\n"
+        "class TerminateOnImport:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name == 'trimesh.path':  # imported inside trimesh's 'except BaseException'\n"
+        "            sys.meta_path.remove(self)\n"
+        "            os.kill(os.getpid(), signal.SIGTERM)\n"
+        "        return None\n\n\n"
+        "from mitsuba_active.cli import main\n\n"
+        "sys.meta_path.insert(0, TerminateOnImport())\n"
+        f"main(['scene', {str(shared_data / 'meshes' / 'spot.obj')!r}, '-o', {str(out)!r}], "
+        "prog_name='mitsuba-active')\n")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path,
+                          env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
+    assert proc.returncode == 130 and proc.stderr == "mitsuba-active: interrupted\n", proc.stderr
+    assert proc.stdout == "" and not out.parent.exists()
+
+
 def test_plan_notes_eval_views_it_leaves_out_and_an_interior_rig_around_an_object(spot_xml, tmp_path):
     code, text = run_cli("plan", spot_xml, "--planner", "even", "--budget", "2", "--eval-views", "1,2,9",
                          "--eval-steps", "5", "--resolution", "16", "--candidates", "3", "--heldout", "1",

@@ -128,9 +128,11 @@ def load_suite(path) -> Suite:
     if not path.is_file():
         raise UserError(not_a_file(path, "suite file"))
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(path.read_text(encoding="utf-8-sig"))  # a byte-order mark, as some editors write
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise UserError(f"malformed suite file {path}: {exc}") from None
+    except RecursionError:
+        raise UserError(f"malformed suite file {path}: nested too deeply to read") from None
     run_fields = _setting_names()
     unknown = set(data) - {"name", "planners", "defaults", "scenes"}
     if unknown:
@@ -177,9 +179,9 @@ def load_suite(path) -> Suite:
         # The name makes folders inside the suite's (scenes/NAME, runs/NAME, report/plots/NAME beside
         # report/plots/summary), CSV and Markdown cells and a --scenes entry.
         if (not isinstance(name, str) or name in (".", "..", SUMMARY) or not name.isprintable()
-                or any(c in name for c in "/\\,|")):
+                or any(c in name for c in "/\\,|") or name != name.strip()):
             raise UserError(f"{path}: scene #{i + 1}: name {name!r} cannot name a scene's folders and table rows "
-                            f"(no '/', '\\', ',' or '|', not '.', '..' or '{SUMMARY}')")
+                            f"(no '/', '\\', ',' or '|', no space at either end, not '.', '..' or '{SUMMARY}')")
         extra = set(s) - {"name", "mesh", "xml"} - set(SCENE_OPTIONS) - run_fields
         if extra:
             raise UserError(f"{path}: scene '{name}' has unknown settings: {', '.join(sorted(extra))}")

@@ -84,6 +84,8 @@ def _caused_by_interrupt(exc) -> bool:
 def _one_line_errors(fn):
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
+        if sys.stderr is None:  # started with stderr closed (2>&-): progress bars and messages go nowhere
+            sys.stderr = open(os.devnull, "w")
         # Signal handlers belong to the main thread (a command may be invoked from another).
         handled = threading.current_thread() is threading.main_thread()
         previous = signal.signal(signal.SIGTERM, sigterm_as_interrupt) if handled else None
@@ -251,7 +253,7 @@ def _rendered_files(cameras_json: Path) -> set[str]:
     try:
         views = json.loads(cameras_json.read_text()).get("views", [])
         stems = {Path(v["file"]).stem for v in views}
-    except (OSError, ValueError, AttributeError, KeyError, TypeError):
+    except (OSError, ValueError, AttributeError, KeyError, TypeError, RecursionError):
         return set()
     names = {stem + end for stem in stems if isinstance(stem, str) for end in (".exr", ".png", "_distance.png")}
     return {n for n in names if _RENDERED.fullmatch(n)}

@@ -338,10 +338,20 @@ def _read_depth(path: Path, entry: str) -> np.ndarray:
         d = iio.imread(path)
     except Exception as exc:
         raise UserError(f"cannot read depth map {path}: {exc}") from None
+    if d.dtype == np.uint8 and _png_bit_depth(path) == 16:  # Pillow reads 16-bit colour PNGs as 8-bit
+        raise UserError(f"depth map {path} is a 16-bit colour PNG, which is read as 8-bit; store depth as a "
+                        "16-bit grey PNG, an EXR or a .npy")
     if d.dtype == np.uint8:
         # 8-bit maps (e.g. nerf-synthetic's r_N_depth_0186.png) are normalised, not metric.
         raise UserError(f"depth map {path} is 8-bit and therefore not metric; remove the frame's {entry}")
     return (d[..., 0] if d.ndim == 3 else d).astype(np.float32)
+
+
+def _png_bit_depth(path: Path) -> int | None:
+    """Bits per channel a PNG file's header gives (None for another kind of file)."""
+    with open(path, "rb") as fh:
+        head = fh.read(25)
+    return head[24] if len(head) == 25 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" else None
 
 
 def _crop(img: np.ndarray, crop, path) -> np.ndarray:
@@ -385,6 +395,8 @@ def _read_json(path: Path) -> dict:
         raise UserError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
     except UnicodeDecodeError:
         raise UserError(f"{path}: not valid JSON (not UTF-8 text)") from None
+    except RecursionError:
+        raise UserError(f"{path}: not a dataset's JSON (nested too deeply to read)") from None
     except OSError as exc:
         raise UserError(f"{path}: cannot read ({exc.strerror})") from None
     if not isinstance(meta, dict):
@@ -433,7 +445,9 @@ def _split(metas, files):
 def _image_path(frame: dict, json_path: Path, index: int):
     """Resolve ``file_path`` (relative to the JSON's folder), trying extensions when the file is absent."""
     fp = frame.get("file_path")
-    if not isinstance(fp, str) or not fp:
+    if fp is not None and not isinstance(fp, str):
+        raise UserError(f"{json_path}: frame {index}'s file_path must be a file name, got {fp!r}")
+    if not fp:
         raise UserError(f"{json_path}: frame {index} has no 'file_path'")
     p = json_path.parent / fp
     if p.is_file():

@@ -54,6 +54,7 @@ def export_transforms(run_dir, out_dir=None) -> Path:
         raise UserError(f"{run_dir}/views is missing images{' or distance maps' if distances else ''} "
                         f"for views {missing}")
     _check_views(run_dir / "views", cams, distances)
+    _refuse_other_datasets(out)
     ref = cams[0]
     # Cameras of their own (rig xml) may differ in field of view: then every
     # frame carries its intrinsics, which nerfstudio reads before the top level's.
@@ -134,12 +135,33 @@ def _check_views(views_dir: Path, cams: list[Camera], distances: bool) -> None:
                                 f"{cam.width}x{cam.height}")
 
 
+def _refuse_other_datasets(out: Path) -> None:
+    """UserError when ``out`` holds a dataset that no export wrote (a ``transforms*.json``
+    that is not an earlier export's): the export would replace or shadow it."""
+    for path in sorted(out.glob("transforms*.json")) if out.is_dir() else []:
+        if path.name != "transforms.json" or not _is_export(path):
+            raise UserError(f"{out} holds a dataset that is not an earlier export ({path.name}); "
+                            "export into another folder (-o)")
+
+
+def _is_export(path: Path) -> bool:
+    """Whether ``path`` reads as a transforms.json this module wrote: every frame names its
+    candidate and an image by the name an export gives it."""
+    try:
+        frames = json.loads(path.read_text()).get("frames")
+    except (OSError, ValueError, AttributeError, RecursionError):
+        return False
+    return bool(frames) and isinstance(frames, list) and all(
+        isinstance(f, dict) and "candidate" in f and isinstance(f.get("file_path"), str)
+        and _WRITTEN.fullmatch(f["file_path"]) for f in frames)
+
+
 def _exported_files(path: Path) -> set[str]:
     """The image and distance files an earlier export listed in ``path``
     (only names that this module writes, so no other file is ever removed)."""
     try:
         frames = json.loads(path.read_text()).get("frames", [])
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, AttributeError, RecursionError):
         return set()
     names = {f.get(key) for f in frames if isinstance(f, dict) for key in ("file_path", "distance_file_path")}
     return {n for n in names if isinstance(n, str) and _WRITTEN.fullmatch(n)}

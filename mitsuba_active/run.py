@@ -332,10 +332,13 @@ def read_record(path) -> dict:
     path = Path(path)
     try:
         rec = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:  # ValueError: not JSON, or not text
+    except (OSError, ValueError, RecursionError) as exc:  # not JSON, not text, or nested past Python's stack
         raise UserError(f"{path} is damaged ({exc})") from None
     if not isinstance(rec, dict) or not set(REQUIRED_PARTS) <= set(rec):
         raise UserError(f"{path} is not a run record")
+    if rec.get("format", RUN_FORMAT) != RUN_FORMAT:
+        raise UserError(f"{path} is a run record of format {rec['format']!r}, which this version of mitsuba-active "
+                        f"does not read (it reads format {RUN_FORMAT})")
 
     def damaged(why: str) -> UserError:
         return UserError(f"{path} is damaged ({why})")
@@ -369,9 +372,15 @@ def read_record(path) -> dict:
                 and captured[views - len(picks):views] == picks):
             raise damaged("its rounds did not pick the views it lists as captured")
     for m in rec["metrics"]:
+        # PSNR is infinite for a perfect match, never NaN.
         if not (isinstance(m, dict) and is_whole(m.get("views")) and is_number(m.get("psnr"))
+                and not math.isnan(m["psnr"])
                 and all(m.get(k) is None or is_number(m[k]) for k in ("ssim", "distance_error", "fit_psnr"))):
             raise damaged("an entry of its metrics is not the scores at a view count")
+    counts = [m["views"] for m in rec["metrics"]]
+    if counts != sorted(set(counts)) or not all(1 <= v <= len(captured) for v in counts):
+        raise damaged(f"its metrics are at view counts {counts}, not once each at counts of its "
+                      f"{len(captured)} captured views")
     if not all(isinstance(v, str) for v in rec.get("versions", {}).values()):
         raise damaged("its versions are not names of versions")
     ens_file = rec.get("ensemble_file")

@@ -191,7 +191,8 @@ def _material_file(mesh_path: Path) -> tuple[Path | None, tuple | None]:
     (image,) = found
     try:
         return image, _check_image(image)  # a file Mitsuba reads
-    except UserError:
+    except UserError as exc:
+        warnings.warn(f"{mesh_path.name}: its material's {exc}; the mesh is authored without it", stacklevel=4)
         return None, None
 
 
@@ -600,6 +601,8 @@ def _referenced_files(xml_path: Path, seen=None, resolver=None, base: Path | Non
         raise UserError(f"cannot read {xml_path}: {exc.strerror}") from None
     if root.tag != "scene":
         raise UserError(f"{xml_path} is not a Mitsuba scene (root element <{root.tag}>, expected <scene>)")
+    if _nesting_depth(root) > MAX_XML_DEPTH:  # Mitsuba's own parser recurses, and would crash
+        raise UserError(f"malformed XML in {xml_path}: elements nested more than {MAX_XML_DEPTH} deep")
     for el in root.iter("default"):
         params.setdefault(el.get("name"), el.get("value"))
 
@@ -624,6 +627,20 @@ def _referenced_files(xml_path: Path, seen=None, resolver=None, base: Path | Non
         if el.tag == "include":
             files += _referenced_files(f, seen, resolver, base, params)
     return files
+
+
+#: Deepest nesting of elements read from a scene XML (scenes nest a few levels deep).
+MAX_XML_DEPTH = 1000
+
+
+def _nesting_depth(root) -> int:
+    """Levels of elements under and including ``root`` (an ElementTree element), counted without recursion."""
+    deepest, stack = 0, [(root, 1)]
+    while stack:
+        el, depth = stack.pop()
+        deepest = max(deepest, depth)
+        stack.extend((child, depth + 1) for child in el)
+    return deepest
 
 
 def content_hash(xml_path: Path, refs: list[Path] | None = None, **params) -> str:

@@ -80,6 +80,17 @@ def test_malformed_xml(tmp_path, out):
     _assert_nothing_written(out)
 
 
+def test_xml_nested_past_mitsubas_parser_is_malformed(tmp_path, out):
+    """Mitsuba's parser recurses: a scene nested thousands of levels deep would crash it."""
+    xml = tmp_path / "deep.xml"
+    n = 10_000
+    xml.write_text("<scene version='3.0.0'><shape type='sphere'/>" + "<emitter type='constant'>" * n
+                   + "</emitter>" * n + "</scene>")
+    code, text = run_cli("render", xml, "-o", out)
+    assert_one_line_error(code, text, "deep.xml: elements nested more than 1000 deep")
+    _assert_nothing_written(out)
+
+
 def test_xml_mitsuba_rejects(tmp_path, out):
     xml = tmp_path / "odd.xml"
     xml.write_text("<scene version='3.0.0'><shape type='no_such_plugin'/></scene>")
@@ -722,6 +733,11 @@ def finished_run(spot_xml, tmp_path_factory):
 @pytest.mark.parametrize("edit, needle", [
     (dict(metrics=5), "its metrics is int, not list"),
     (dict(metrics=[{"views": 2, "psnr": "high"}]), "an entry of its metrics is not the scores at a view count"),
+    (dict(metrics=[{"views": 2, "psnr": float("nan")}]), "an entry of its metrics is not the scores at a view count"),
+    (dict(metrics=[{"views": 2, "psnr": 20.0}] * 2), "its metrics are at view counts [2, 2], not once each at counts "
+                                                  "of its 2 captured views"),
+    (dict(metrics=[{"views": 3, "psnr": 20.0}]), "its metrics are at view counts [3], not once each at counts of "
+                                                 "its 2 captured views"),
     (dict(versions={"mitsuba": [3]}), "its versions are not names of versions"),
     (dict(wall_seconds="long"), "its wall_seconds is 'long', not a number of seconds"),
     (dict(bbox=[[0, 0], [1, 1]]), "its bbox is [[0, 0], [1, 1]], not two corners of three numbers"),
@@ -746,6 +762,20 @@ def test_a_hand_edited_run_record_is_refused_by_every_command(finished_run, spot
     assert _recorded(Job("s", "even", 0, str(spot_xml), rec["config"], str(out))) is None
 
 
+def test_a_run_record_of_another_format_is_named_so(finished_run, spot_xml, tmp_path):
+    import json
+    import shutil
+
+    out = tmp_path / "run"
+    shutil.copytree(finished_run, out)
+    rec = json.loads((out / "run.json").read_text())
+    (out / "run.json").write_text(json.dumps({**rec, "format": 2}))
+    for args in (["plan", spot_xml, "--out", out, *TINY_PLAN], ["export", out]):
+        code, text = run_cli(*args)
+        assert_one_line_error(code, text, "run.json is a run record of format 2, which this version of "
+                                          "mitsuba-active does not read (it reads format 1)")
+
+
 def test_a_run_record_with_a_broken_random_state_or_pose(finished_run, spot_xml, tmp_path):
     import json
     import shutil
@@ -762,6 +792,38 @@ def test_a_run_record_with_a_broken_random_state_or_pose(finished_run, spot_xml,
         (out / "run.json").write_text(json.dumps({**rec, "candidates": cams}))
         code, text = run_cli("export", out)
         assert_one_line_error(code, text, f"run.json is damaged (one of its candidates: a camera's {needle}")
+
+
+def test_a_run_record_nested_too_deeply_is_damaged(finished_run, spot_xml, tmp_path):
+    import shutil
+
+    out = tmp_path / "run"
+    shutil.copytree(finished_run, out)
+    (out / "run.json").write_text("[" * 100_000 + "]" * 100_000)
+    code, text = run_cli("plan", spot_xml, "--out", out, *TINY_PLAN)
+    assert_one_line_error(code, text, "run.json is damaged (maximum recursion depth exceeded")
+    code, text = run_cli("export", out)
+    assert_one_line_error(code, text, "run.json is damaged (maximum recursion depth exceeded")
+
+
+def test_export_refuses_a_folder_that_holds_another_dataset(finished_run, tmp_path):
+    """Its transforms.json would be replaced (or a transforms_train.json shadowed); an
+    earlier export's is replaced."""
+    import json
+
+    for name in ("transforms.json", "transforms_train.json"):
+        dataset = tmp_path / name
+        (dataset / "images").mkdir(parents=True)
+        original = json.dumps({"frames": [{"file_path": "images/r_0.png", "transform_matrix": np.eye(4).tolist()}]})
+        (dataset / name).write_text(original)
+        code, text = run_cli("export", finished_run, "-o", dataset)
+        assert_one_line_error(code, text, f"holds a dataset that is not an earlier export ({name}); export into "
+                                          "another folder (-o)")
+        assert (dataset / name).read_text() == original and sorted(p.name for p in dataset.iterdir()) == [
+            "images", name]
+    for _ in range(2):  # again over the first
+        code, text = run_cli("export", finished_run, "-o", tmp_path / "ours")
+        assert code == 0, text
 
 
 def test_export_refuses_damaged_view_files(finished_run, tmp_path):
@@ -838,6 +900,19 @@ def test_ctrl_c_while_libraries_load_is_one_line(tmp_path, module, importer):
                           env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
     assert proc.returncode == -signal.SIGINT and proc.stderr == "mitsuba-active: interrupted\n", proc.stderr
     assert proc.stdout == ""
+
+
+def test_a_command_runs_with_stderr_closed(tmp_path, spot_xml):
+    """Started with ``2>&-`` (no stderr at all), its progress bars have nowhere to go: it still runs."""
+    import shlex
+
+    out = tmp_path / "r"
+    command = [sys.executable, "-m", "mitsuba_active", "render", str(spot_xml), "-o", str(out), "--resolution", "8",
+               "--candidates", "2", "--heldout", "1", "--spp", "1"]
+    proc = subprocess.run(["bash", "-c", shlex.join(command) + " 2>&-"], capture_output=True, text=True,
+                          env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
+    assert proc.returncode == 0 and proc.stdout == f"wrote 2 views to {out}\n", proc
+    assert (out / "cand_001.png").is_file()
 
 
 def test_sigterm_while_the_commands_libraries_load_stops_the_command(tmp_path, shared_data):

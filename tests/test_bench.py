@@ -301,6 +301,7 @@ def test_suite_runs_in_worker_processes(tiny_suite, tmp_path):
     # ... nor split the CSV and Markdown tables' cells or a --scenes list, nor take the summary plots' folder.
     ("[[scenes]]\nname='ball, big'\nmesh='x.obj'\n", r"name 'ball, big' cannot name .*no '/', '\\', ',' or '\|'"),
     ("[[scenes]]\nname='a|b'\nmesh='x.obj'\n", "name 'a|b' cannot name"),
+    ("[[scenes]]\nname=' '\nmesh='x.obj'\n", "name ' ' cannot name .* no space at either end"),
     ("[[scenes]]\nname='summary'\nmesh='x.obj'\n", "name 'summary' cannot name .* or 'summary'"),
     ("name = 1979-05-27\n[[scenes]]\nmesh='x.obj'\n", "name must be a text \\(the suite's title\\), got datetime"),
     ("[[scenes]]\nxml='s.xml'\ncolor=[1, 0, 0]\nfloor=true\n", "scene 's': color, floor dress a mesh; an xml scene"),
@@ -310,12 +311,19 @@ def test_suite_runs_in_worker_processes(tiny_suite, tmp_path):
     ("[[scenes]]\nmesh = ['x']\n", "scene #1: mesh must be a file's path"),
     (b"name = '\xff'\n", "malformed suite file .*utf-8"),
     ("planners = []\n[[scenes]]\nmesh='x.obj'\n", "the suite has no planners"),
+    ("name = " + "[" * 100_000 + "]" * 100_000 + "\n", "malformed suite file .*nested too deeply"),
 ])
 def test_bad_suites(tmp_path, text, message):
     bad = tmp_path / "bad.toml"
     bad.write_bytes(text) if isinstance(text, bytes) else bad.write_text(text)
     with pytest.raises(UserError, match=message):
         load_suite(bad)
+
+
+def test_a_suite_file_may_start_with_a_byte_order_mark(tmp_path):
+    (tmp_path / "x.obj").write_text("")
+    (tmp_path / "s.toml").write_bytes("\ufeffname = 'bom'\n[[scenes]]\nmesh = 'x.obj'\n".encode("utf-8"))
+    assert load_suite(tmp_path / "s.toml").name == "bom"
 
 
 def test_a_suites_texture_is_named_relative_to_the_suite(tmp_path, monkeypatch):

@@ -288,6 +288,25 @@ def test_an_8_bit_depth_map_names_the_key_to_remove(tmp_path, key):
         DatasetSource.from_path(tmp_path).heldout_view(0)
 
 
+def test_a_16_bit_colour_depth_png_is_named_as_such(tmp_path):
+    """Pillow reads it as 8-bit: the message says what the file is, not what it was read as."""
+    import struct
+    import zlib
+
+    def chunk(kind, data):
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    rows = b"".join(b"\0" + np.full((8, 3), 1200, ">u2").tobytes() for _ in range(8))  # filter byte, RGB pixels
+    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 8, 8, 16, 2, 0, 0, 0))
+           + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b""))
+    (tmp_path / "depth").mkdir()
+    (tmp_path / "depth" / "d.png").write_bytes(png)
+    write_dataset(tmp_path, n=3, frame_extra={0: {"depth_file_path": "depth/d.png"}})
+    with pytest.raises(UserError, match="d.png is a 16-bit colour PNG, which is read as 8-bit; store depth as a "
+                                        "16-bit grey PNG, an EXR or a .npy"):
+        DatasetSource.from_path(tmp_path).heldout_view(0)
+
+
 def test_aabb_key_sets_bounds(tmp_path):
     write_dataset(tmp_path, n=4, extra={"aabb": [[-1, -2, -3], [1, 2, 3]]})
     src = DatasetSource.from_path(tmp_path)
@@ -450,8 +469,18 @@ def _third_frame_without_path(root):
     write_dataset(root, n=5, frame_extra={3: {"file_path": None}})
 
 
+def _deep_json(root):
+    write_dataset(root, n=3)
+    (root / "transforms.json").write_text('{"frames": ' + "[" * 100_000 + "]" * 100_000 + "}")
+
+
+def _numbered_file_path(root):
+    write_dataset(root, n=5, frame_extra={2: {"file_path": 5}})
+
+
 @pytest.mark.parametrize("make,message", [
-    (_bad_json, "not valid JSON"), (_no_frames, "no frames"), (_no_focal, "camera_angle_x or fl_x"),
+    (_bad_json, "not valid JSON"), (_deep_json, "nested too deeply to read"),
+    (_numbered_file_path, "frame 2's file_path must be a file name, got 5"), (_no_frames, "no frames"), (_no_focal, "camera_angle_x or fl_x"),
     (_all_missing, "none of the dataset's image files"), (_bad_matrix, "must be 4x4"),
     (_distorted, "distortion"), (_non_square, "non-square"), (_bad_aabb, "aabb"),
     (_wordy_focal, "camera_angle_x must be a number"), (_flat_focal, "camera_angle_x must be in \\(0, pi\\) radians, got 0"),

@@ -245,7 +245,8 @@ def test_export_round_trips_poses(source, tmp_path):
     # Exporting fewer views into the same folder leaves none of the earlier ones behind.
     (tmp_path / "ds" / "notes.txt").write_text("mine")
     rec_path.write_text(json.dumps({**rec, "finished": False, "captured": rec["captured"][:2],
-                                    "rounds": [r for r in rec["rounds"] if r["views"] <= 2]}))
+                                    "rounds": [r for r in rec["rounds"] if r["views"] <= 2],
+                                    "metrics": [m for m in rec["metrics"] if m["views"] <= 2]}))
     with pytest.warns(UserWarning, match="exporting the 2 of 4 views"):
         export_transforms(tmp_path / "r", tmp_path / "ds")
     assert sorted(p.name for p in (tmp_path / "ds").rglob("view_*")) == [

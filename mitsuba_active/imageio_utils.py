@@ -36,7 +36,7 @@ def atomic_write(path, suffix=""):
         yield tmp
         os.replace(tmp, path)
     except OSError as exc:  # a full disk: name the output, not its temporary name
-        if exc.filename in (tmp, str(tmp)):
+        if exc.filename is None or exc.filename in (tmp, str(tmp)):  # a failed write names no file
             exc.filename = str(path)
         if exc.filename2 in (tmp, str(tmp)):  # shutil's copies name the source first
             exc.filename2 = str(path)

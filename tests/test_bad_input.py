@@ -1008,3 +1008,16 @@ def test_a_folder_where_a_file_is_named_is_one_line(tmp_path, shared_data, comma
     code, output = run_cli(*[part.format(**names) for part in command])
     assert_one_line_error(code, output, message.format(**names))
     assert not (tmp_path / "out").exists()
+
+
+def test_a_write_that_fails_names_the_output(tmp_path):
+    """A full disk fails a write, which names no file: the message names the output being written."""
+    import errno
+
+    from mitsuba_active.imageio_utils import atomic_write
+
+    with pytest.raises(OSError) as err:
+        with atomic_write(tmp_path / "view.png") as tmp:
+            tmp.write_bytes(b"half")
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert err.value.filename == str(tmp_path / "view.png") and list(tmp_path.iterdir()) == []

@@ -120,7 +120,8 @@ def load_mesh(path) -> "trimesh.Trimesh":
         with np.errstate(invalid="ignore", over="ignore"):
             mesh = trimesh.load(str(path), force="mesh")
             # trimesh's processing drops non-finite vertices with their faces: look at the file's own.
-            finite = np.isfinite(trimesh.load(str(path), force="mesh", process=False).vertices).all()
+            raw = trimesh.load(str(path), force="mesh", process=False)
+            finite = np.isfinite(raw.vertices).all()
     except Exception as exc:
         # A bare KeyError names only the missing key (a glTF buffer, say): say what it is.
         why = f"{type(exc).__name__}: {_one_line(exc)}" if isinstance(exc, (KeyError, IndexError)) else _one_line(exc)
@@ -131,6 +132,10 @@ def load_mesh(path) -> "trimesh.Trimesh":
         raise UserError(f"mesh {path} has no triangles")
     extent = float(np.max(mesh.extents))
     if not extent > 0 or mesh.area <= 1e-12 * extent ** 2:  # any size, as long as it has some area
+        raw_extent = float(np.ptp(raw.vertices, axis=0).max()) if len(raw.vertices) else 0.0
+        if 0 < raw_extent < 1e-6:  # trimesh merges vertices closer than its tolerance (1e-8)
+            raise UserError(f"mesh {path} spans only {raw_extent:.3g} units, too small for trimesh, which merges "
+                            "vertices closer than 1e-8: scale it up")
         raise UserError(f"mesh {path} is degenerate (zero area or zero extent)")
     return mesh
 

@@ -60,6 +60,8 @@ def test_a_texture_and_no_texture_together_are_refused(tmp_path, out, shared_dat
 @pytest.mark.parametrize("content,needle", [
     ("# no geometry at all\n", "no triangles"),
     ("v 0 0 0\nv 0 0 0\nv 0 0 0\nf 1 2 3\n", "degenerate"),
+    # trimesh merges vertices closer than 1e-8: a mesh that small loses its triangles.
+    ("v 0 0 0\nv 2e-9 0 0\nv 0 2e-9 0\nf 1 2 3\n", "spans only 2e-09 units, too small for trimesh"),
     # trimesh drops a NaN vertex's faces on its own: the mesh would lose them unsaid.
     ("v 0 0 0\nv 1 0 0\nv 0 1 0\nv nan 0 1\nf 1 2 3\nf 1 2 4\n", "non-finite vertex coordinates"),
     ("v 0 0 0\nv nan 0 0\nv 0 1 0\nf 1 2 3\n", "non-finite vertex coordinates"),  # its one triangle, not none

@@ -880,6 +880,18 @@ def test_image_sizes_must_be_whole_numbers_of_pixels(spot_xml):
         SceneSource.from_xml(spot_xml, n_candidates=4, n_heldout=1, resolution=16.5)
 
 
+def _signal_on_import(module: str, signum: str) -> str:
+    """Python source that sends its own process ``signal.<signum>`` when ``module`` is first imported."""
+    return ("import os, signal, sys\n\n\n"
+            "class SignalOnImport:\n"
+            "    def find_spec(self, name, path=None, target=None):\n"
+            f"        if name == {module!r}:\n"
+            "            sys.meta_path.remove(self)\n"
+            f"            os.kill(os.getpid(), signal.{signum})\n"
+            "        return None\n\n\n"
+            "sys.meta_path.insert(0, SignalOnImport())\n")
+
+
 @pytest.mark.parametrize("module,importer", [("mitsuba", "mitsuba_active"), ("click", "mitsuba_active.cli")])
 def test_ctrl_c_while_libraries_load_is_one_line(tmp_path, module, importer):
     """Ctrl-C while Dr.Jit and Mitsuba (or the command line's libraries) load
@@ -887,17 +899,7 @@ def test_ctrl_c_while_libraries_load_is_one_line(tmp_path, module, importer):
     SIGINT, not by an unrelated error inside a half-loaded extension."""
     import signal
 
-    script = (
-        "import os, signal, sys\n\n\n"
-        "class InterruptOnImport:\n"
-        "    def find_spec(self, name, path=None, target=None):\n"
-        f"        if name == {module!r}:\n"
-        "            sys.meta_path.remove(self)\n"
-        "            os.kill(os.getpid(), signal.SIGINT)\n"
-        "        return None\n\n\n"
-        "sys.meta_path.insert(0, InterruptOnImport())\n"
-        f"import {importer}\n"
-        "print('imported')\n")
+    script = _signal_on_import(module, "SIGINT") + f"import {importer}\nprint('imported')\n"
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path,
                           env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
     assert proc.returncode == -signal.SIGINT and proc.stderr == "mitsuba-active: interrupted\n", proc.stderr
@@ -922,18 +924,10 @@ def test_sigterm_while_the_commands_libraries_load_stops_the_command(tmp_path, s
     swallow an interrupt raised inside them) stops it as Ctrl-C does: one line,
     exit 130, nothing written."""
     out = tmp_path / "s" / "spot.xml"
-    script = (
-        "import os, signal, sys\n\n\n"
-        "class TerminateOnImport:\n"
-        "    def find_spec(self, name, path=None, target=None):\n"
-        "        if name == 'trimesh.path':  # imported inside trimesh's 'except BaseException'\n"
-        "            sys.meta_path.remove(self)\n"
-        "            os.kill(os.getpid(), signal.SIGTERM)\n"
-        "        return None\n\n\n"
-        "from mitsuba_active.cli import main\n\n"
-        "sys.meta_path.insert(0, TerminateOnImport())\n"
-        f"main(['scene', {str(shared_data / 'meshes' / 'spot.obj')!r}, '-o', {str(out)!r}], "
-        "prog_name='mitsuba-active')\n")
+    # trimesh imports trimesh.path inside an 'except BaseException'.
+    script = ("from mitsuba_active.cli import main\n" + _signal_on_import("trimesh.path", "SIGTERM")
+              + f"main(['scene', {str(shared_data / 'meshes' / 'spot.obj')!r}, '-o', {str(out)!r}], "
+              "prog_name='mitsuba-active')\n")
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path,
                           env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
     assert proc.returncode == 130 and proc.stderr == "mitsuba-active: interrupted\n", proc.stderr

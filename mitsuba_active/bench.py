@@ -179,7 +179,7 @@ def load_suite(path) -> Suite:
         # The name makes folders inside the suite's (scenes/NAME, runs/NAME, report/plots/NAME beside
         # report/plots/summary), CSV and Markdown cells and a --scenes entry.
         if (not isinstance(name, str) or name in (".", "..", SUMMARY) or not name.isprintable()
-                or any(c in name for c in "/\\,|") or name != name.strip()):
+                or any(c in name for c in "/\\,|") or ("name" in s and name != name.strip())):
             raise UserError(f"{path}: scene #{i + 1}: name {name!r} cannot name a scene's folders and table rows "
                             f"(no '/', '\\', ',' or '|', no space at either end, not '.', '..' or '{SUMMARY}')")
         extra = set(s) - {"name", "mesh", "xml"} - set(SCENE_OPTIONS) - run_fields

@@ -37,7 +37,7 @@ def setting_value(text: str):
     text = text.strip()
     try:
         return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
+    except (tomllib.TOMLDecodeError, RecursionError):  # nested past Python's stack: text, refused where used
         pass
     try:
         return float(text)

@@ -372,9 +372,7 @@ def read_record(path) -> dict:
                 and captured[views - len(picks):views] == picks):
             raise damaged("its rounds did not pick the views it lists as captured")
     for m in rec["metrics"]:
-        # PSNR is infinite for a perfect match, never NaN.
         if not (isinstance(m, dict) and is_whole(m.get("views")) and is_number(m.get("psnr"))
-                and not math.isnan(m["psnr"])
                 and all(m.get(k) is None or is_number(m[k]) for k in ("ssim", "distance_error", "fit_psnr"))):
             raise damaged("an entry of its metrics is not the scores at a view count")
     counts = [m["views"] for m in rec["metrics"]]

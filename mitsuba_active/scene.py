@@ -133,7 +133,8 @@ def load_mesh(path) -> "trimesh.Trimesh":
     extent = float(np.max(mesh.extents))
     if not extent > 0 or mesh.area <= 1e-12 * extent ** 2:  # any size, as long as it has some area
         raw_extent = float(np.ptp(raw.vertices, axis=0).max()) if len(raw.vertices) else 0.0
-        if 0 < raw_extent < 1e-6:  # trimesh merges vertices closer than its tolerance (1e-8)
+        # trimesh merges vertices closer than its tolerance (1e-8): a tiny mesh with area loses it.
+        if 0 < raw_extent < 1e-6 and raw.area > 1e-12 * raw_extent ** 2:
             raise UserError(f"mesh {path} spans only {raw_extent:.3g} units, too small for trimesh, which merges "
                             "vertices closer than 1e-8: scale it up")
         raise UserError(f"mesh {path} is degenerate (zero area or zero extent)")
@@ -196,8 +197,7 @@ def _material_file(mesh_path: Path) -> tuple[Path | None, tuple | None]:
     (image,) = found
     try:
         return image, _check_image(image)  # a file Mitsuba reads
-    except UserError as exc:
-        warnings.warn(f"{mesh_path.name}: its material's {exc}; the mesh is authored without it", stacklevel=4)
+    except UserError:
         return None, None
 
 

@@ -320,6 +320,19 @@ def test_bad_suites(tmp_path, text, message):
         load_suite(bad)
 
 
+def test_a_scene_named_by_its_file_may_end_in_a_space(tmp_path):
+    (tmp_path / "spot .obj").write_text("")
+    (tmp_path / "s.toml").write_text("[[scenes]]\nmesh = 'spot .obj'\n")
+    assert load_suite(tmp_path / "s.toml").scenes[0].name == "spot "
+
+
+def test_a_setting_nested_past_pythons_stack_is_text():
+    from mitsuba_active.checks import setting_value
+
+    deep = "[" * 3000 + "]" * 3000
+    assert setting_value(deep) == deep
+
+
 def test_a_suite_file_may_start_with_a_byte_order_mark(tmp_path):
     (tmp_path / "x.obj").write_text("")
     (tmp_path / "s.toml").write_bytes("\ufeffname = 'bom'\n[[scenes]]\nmesh = 'x.obj'\n".encode("utf-8"))

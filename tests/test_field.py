@@ -329,6 +329,9 @@ def test_load_rejects_other_files(tmp_path):
     np.savez(bad, **{**saved, "config": np.array(json.dumps(config))})
     with pytest.raises(UserError, match=f"{re.escape(str(bad))}: its config has unknown field option nlevels"):
         Ensemble.load(bad)
+    np.savez(bad, **{**saved, "config": np.array("[" * 100_000 + "]" * 100_000)})
+    with pytest.raises(UserError, match="cannot read ensemble file .*recursion"):
+        Ensemble.load(bad)
 
 
 def test_divergence_raises_user_error():

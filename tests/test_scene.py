@@ -380,19 +380,6 @@ def test_authored_again_a_scene_replaces_the_files_only_it_names(tmp_path, share
     assert (tmp_path / "suzanne.ply").read_bytes() == turned and "suzanne_scene.ply" in (tmp_path / "t.xml").read_text()
 
 
-@pytest.mark.parametrize("damage", ["missing", "not an image"])
-def test_a_material_texture_that_cannot_be_read_is_warned_of(tmp_path, shared_data, damage):
-    obj = tmp_path / "m.obj"
-    obj.write_bytes(b"mtllib m.mtl\nusemtl mat\n" + (shared_data / "meshes" / "spot.obj").read_bytes())
-    (tmp_path / "m.mtl").write_text("newmtl mat\nKd 0.8 0.1 0.1\nmap_Kd diffuse.png\n")
-    if damage == "not an image":
-        (tmp_path / "diffuse.png").write_text("not a PNG")
-    with pytest.warns(UserWarning, match="m.obj: its material's texture .*diffuse.png is not (a file|an image "
-                                         "Mitsuba can read).*; the mesh is authored without it"):
-        xml = scene_from_mesh(obj, tmp_path / "out" / "m.xml")
-    assert "bitmap" not in xml.read_text()
-
-
 @pytest.mark.parametrize("options", ["", "-s 1 1 1 "])  # trimesh reads the image only without options
 def test_a_meshs_material_texture_comes_before_an_image_named_like_it(tmp_path, shared_data, options):
     from PIL import Image

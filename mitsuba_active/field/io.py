@@ -116,7 +116,7 @@ def load_ensemble(cls, path):
         with np.load(path, allow_pickle=False) as z:
             ens = _ensemble_from(cls, z, path)
     # A truncated or foreign file fails in the zip reader, the decompressor or a lookup.
-    except (OSError, ValueError, EOFError, KeyError, TypeError, AttributeError, zipfile.BadZipFile,
+    except (OSError, ValueError, EOFError, KeyError, TypeError, AttributeError, RecursionError, zipfile.BadZipFile,
             zlib.error) as exc:
         raise UserError(f"cannot read ensemble file {path}: {exc}") from None
     dr.eval(ens._opt["grid"], ens._opt["background"])

@@ -54,7 +54,7 @@ def export_transforms(run_dir, out_dir=None) -> Path:
         raise UserError(f"{run_dir}/views is missing images{' or distance maps' if distances else ''} "
                         f"for views {missing}")
     _check_views(run_dir / "views", cams, distances)
-    _refuse_other_datasets(out)
+    earlier = _earlier_export(out)
     ref = cams[0]
     # Cameras of their own (rig xml) may differ in field of view: then every
     # frame carries its intrinsics, which nerfstudio reads before the top level's.
@@ -84,7 +84,6 @@ def export_transforms(run_dir, out_dir=None) -> Path:
                     frame["source_file_path"] = rec["candidate_files"][index]
                 frames.append({**frame, "transform_matrix": mitsuba_to_opengl(cam.to_world).tolist()})
             path = out / "transforms.json"
-            earlier = _exported_files(path)
             stage("transforms.json").write_text(json.dumps(_transforms(rec, ref, distances, frames), indent=1))
             renames = staged.pop_all()
         with interrupts_deferred():
@@ -135,34 +134,31 @@ def _check_views(views_dir: Path, cams: list[Camera], distances: bool) -> None:
                                 f"{cam.width}x{cam.height}")
 
 
-def _refuse_other_datasets(out: Path) -> None:
-    """UserError when ``out`` holds a dataset that no export wrote (a ``transforms*.json``
-    that is not an earlier export's): the export would replace or shadow it."""
+def _earlier_export(out: Path) -> set[str]:
+    """The image and distance files an earlier export into ``out`` listed (only names that
+    this module writes, so no other file is ever removed). UserError when ``out`` holds a
+    dataset that no export wrote (a ``transforms*.json`` that is not an earlier export's):
+    the export would replace or shadow it."""
+    earlier = set()
     for path in sorted(out.glob("transforms*.json")) if out.is_dir() else []:
-        if path.name != "transforms.json" or not _is_export(path):
+        frames = _exported_frames(path) if path.name == "transforms.json" else None
+        if frames is None:
             raise UserError(f"{out} holds a dataset that is not an earlier export ({path.name}); "
                             "export into another folder (-o)")
+        names = {f.get(key) for f in frames for key in ("file_path", "distance_file_path")}
+        earlier = {n for n in names if isinstance(n, str) and _WRITTEN.fullmatch(n)}
+    return earlier
 
 
-def _is_export(path: Path) -> bool:
-    """Whether ``path`` reads as a transforms.json this module wrote: every frame names its
-    candidate and an image by the name an export gives it."""
+def _exported_frames(path: Path) -> list[dict] | None:
+    """The frames of ``path`` when it reads as a transforms.json this module wrote (every
+    frame names its candidate and an image by the name an export gives it), else None."""
     try:
         frames = json.loads(path.read_text()).get("frames")
     except (OSError, ValueError, AttributeError, RecursionError):
-        return False
-    return bool(frames) and isinstance(frames, list) and all(
+        return None
+    ours = bool(frames) and isinstance(frames, list) and all(
         isinstance(f, dict) and "candidate" in f and isinstance(f.get("file_path"), str)
         and _WRITTEN.fullmatch(f["file_path"]) for f in frames)
-
-
-def _exported_files(path: Path) -> set[str]:
-    """The image and distance files an earlier export listed in ``path``
-    (only names that this module writes, so no other file is ever removed)."""
-    try:
-        frames = json.loads(path.read_text()).get("frames", [])
-    except (OSError, ValueError, AttributeError, RecursionError):
-        return set()
-    names = {f.get(key) for f in frames if isinstance(f, dict) for key in ("file_path", "distance_file_path")}
-    return {n for n in names if isinstance(n, str) and _WRITTEN.fullmatch(n)}
+    return frames if ours else None
 

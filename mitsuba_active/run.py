@@ -473,10 +473,15 @@ def field_config(cfg: RunConfig, planner: bool = True):
     return FieldConfig(**{**base, **cfg.field})
 
 
+def has_distances(source) -> bool:
+    """Whether a view source's views carry distances (a rendered scene's do; a dataset's need depth maps)."""
+    return bool(getattr(source, "has_distance", True))
+
+
 def source_field_config(source, cfg: RunConfig, planner: bool = True):
     """:func:`field_config`, also UserError when the source cannot train such a field."""
     config = field_config(cfg, planner)
-    if config.distance_weight > 0 and not getattr(source, "has_distance", True):
+    if config.distance_weight > 0 and not has_distances(source):
         raise UserError(f"distance_weight (--distance-weight) needs distances, and {source.name} has no depth maps "
                         "(its frames give no depth_file_path or distance_file_path)")
     if config.empty_weight > 0 and not isinstance(source, SceneSource):
@@ -710,7 +715,7 @@ class Run:
                        "heldout": [c.to_dict() for c in self.source.heldout],
                        **self._frame_files(),
                        "content_hash": self._content_hash(),
-                       "distances": self._has_distance(),
+                       "distances": has_distances(self.source),
                        "captured": [], "rounds": [], "metrics": [], "finished": False}
         return False
 
@@ -720,14 +725,11 @@ class Run:
             return {}
         return {"candidate_files": list(self.source.candidate_files), "heldout_files": list(self.source.heldout_files)}
 
-    def _has_distance(self) -> bool:
-        return bool(getattr(self.source, "has_distance", True))
-
     def _exr_channels(self, view: View) -> dict:
         """A view's EXR channels: linear RGB, and its distances in Z when the
         source has any (no Z of zeros that would read as "nothing hit")."""
         channels = {"RGB": srgb_to_linear(view.rgb)}
-        if self._has_distance():
+        if has_distances(self.source):
             channels["Z"] = view.distance
         return channels
 

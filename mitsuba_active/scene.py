@@ -141,10 +141,16 @@ def load_mesh(path) -> "trimesh.Trimesh":
     return mesh
 
 
+def _mesh_uv(mesh):
+    """The mesh's (V, 2) texture coordinates, or None when it has none for every vertex."""
+    uv = getattr(mesh.visual, "uv", None)
+    return uv if uv is not None and len(uv) == len(mesh.vertices) else None
+
+
 def _find_texture(mesh, mesh_path: Path, texture) -> tuple[np.ndarray | None, Path | None]:
     """UVs (V, 2) and texture image path, or (None, None) when the mesh is untextured."""
-    uv = getattr(mesh.visual, "uv", None)
-    has_uv = uv is not None and len(uv) == len(mesh.vertices)
+    uv = _mesh_uv(mesh)
+    has_uv = uv is not None
     if texture and not has_uv:
         raise UserError(f"a texture (texture, --texture) needs texture coordinates, and {mesh_path} has none")
     if texture is False or not has_uv:
@@ -177,13 +183,12 @@ def _named_texture(mesh_path: Path) -> Path | None:
     return next((cand for cand in _named_textures(mesh_path) if cand.is_file()), None)
 
 
-def _material_file(mesh_path: Path) -> tuple[Path | None, tuple | None]:
-    """The one image file an OBJ's materials name (``map_Kd``, which trimesh
-    misses when options precede the name) and its (width, height); ``(None,
-    None)`` for other formats, for several images, or when Mitsuba cannot
-    read it."""
+def _material_images(mesh_path: Path) -> set[Path]:
+    """The image files an OBJ's materials name (``map_Kd``, which trimesh
+    misses when options precede the name), resolved, whether or not they
+    exist; empty for other formats."""
     if mesh_path.suffix.lower() != ".obj":
-        return None, None
+        return set()
     found = set()
     for lib in re.findall(rb"^mtllib[ \t]+(.+?)[ \t\r]*$", mesh_path.read_bytes(), re.M):
         lib = lib.decode("utf-8", "replace")
@@ -192,6 +197,14 @@ def _material_file(mesh_path: Path) -> tuple[Path | None, tuple | None]:
                 text = mtl.read_bytes()
                 found |= {(mtl.parent / name.decode("utf-8", "replace").split()[-1]).resolve()  # after options
                           for name in re.findall(rb"^[ \t]*map_Kd[ \t]+(\S.*?)[ \t\r]*$", text, re.M)}
+    return found
+
+
+def _material_file(mesh_path: Path) -> tuple[Path | None, tuple | None]:
+    """The one image file an OBJ's materials name and its (width, height);
+    ``(None, None)`` for other formats, for several images, or when Mitsuba
+    cannot read it."""
+    found = _material_images(mesh_path)
     if len(found) != 1:
         return None, None
     (image,) = found
@@ -199,6 +212,24 @@ def _material_file(mesh_path: Path) -> tuple[Path | None, tuple | None]:
         return image, _check_image(image)  # a file Mitsuba reads
     except UserError:
         return None, None
+
+
+def _warn_unused_material_images(mesh_path: Path, has_uv: bool) -> None:
+    """Warn, once per image, that an image an OBJ's materials name is left out of its scene, and why
+    (for a mesh authored without a texture, though none was turned off)."""
+    for image in sorted(_material_images(mesh_path)):
+        if not has_uv:
+            why = "is left out: the mesh has no texture coordinates"
+        elif not image.is_file():
+            why = "is not a file"
+        else:
+            try:
+                _check_image(image)
+                continue  # readable: the texture trimesh found for the mesh (an atlas of several) is used
+            except UserError:
+                why = "is not an image Mitsuba can read"
+        warnings.warn(f"the texture {image} named by the materials of {mesh_path} {why}; "
+                      "the scene is authored without it", stacklevel=3)
 
 
 def _vertex_colors(mesh) -> np.ndarray | None:
@@ -455,6 +486,8 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
             elif opts.texture is None:
                 rgb = material  # one colour per part: as vertex colours
     color = DEFAULT_COLOR if color is None else color
+    if texture is None and opts.texture is None:
+        _warn_unused_material_images(mesh_path, _mesh_uv(mesh) is not None)
 
     out_dir = out_xml.parent if str(out_xml.parent) else Path(".")
     added = new_entries(out_dir)  # undone on failure

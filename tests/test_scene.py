@@ -1,3 +1,5 @@
+import shutil
+
 import numpy as np
 import mitsuba as mi
 import pytest
@@ -398,3 +400,29 @@ def test_a_meshs_material_texture_comes_before_an_image_named_like_it(tmp_path, 
     (tmp_path / "m.mtl").write_bytes(b"newmtl mat\nKd 1 1 1\nmap_Kd  \r\n")
     xml = scene_from_mesh(obj, tmp_path / "out2" / "m.xml")
     assert (tmp_path / "out2" / "m_texture.png").read_bytes() == (tmp_path / "m.png").read_bytes()
+
+
+def test_a_material_texture_left_out_is_named_in_a_warning(tmp_path, shared_data):
+    import warnings
+
+    def authored(mesh, mtl_texture, **options):
+        """The warnings of authoring ``mesh`` with one material naming ``mtl_texture``, and the XML's text."""
+        obj = tmp_path / "m.obj"
+        obj.write_bytes(b"mtllib m.mtl\nusemtl mat\n" + (shared_data / "meshes" / mesh).read_bytes())
+        (tmp_path / "m.mtl").write_text(f"newmtl mat\nKd 0.8 0.2 0.2\nmap_Kd {mtl_texture}\n")
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            xml = scene_from_mesh(obj, tmp_path / "out" / "m.xml", **options)
+        return [str(w.message) for w in caught], xml.read_text()
+
+    missing, text = authored("spot.obj", "tex/gone.png")
+    assert len(missing) == 1 and f"{tmp_path / 'tex' / 'gone.png'}" in missing[0] and "is not a file" in missing[0]
+    assert 'value="0.8 0.2 0.2"' in text  # the material's flat colour, as the warning says
+    (tmp_path / "broken.png").write_text("not an image")
+    assert "is not an image Mitsuba can read" in authored("spot.obj", "broken.png")[0][0]
+    shutil.copyfile(shared_data / "meshes" / "spot_texture.png", tmp_path / "tex.png")
+    assert "no texture coordinates" in authored("suzanne.obj", "tex.png")[0][0]
+    # No warning where the texture is used, or where textures were turned off.
+    used, text = authored("spot.obj", "tex.png")
+    assert used == [] and "m_texture.png" in text
+    assert authored("spot.obj", "tex/gone.png", texture=False)[0] == []

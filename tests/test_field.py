@@ -410,6 +410,17 @@ def test_config_from_option_strings():
             FieldConfig.from_options(bad)
 
 
+def test_a_shared_config_cannot_change_an_ensemble_made_with_it():
+    import dataclasses
+
+    cfg = tiny_config()
+    ens = Ensemble(*BOX, n_members=1, config=cfg, seed=0)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.n_samples = 4
+    changed = dataclasses.replace(cfg, n_samples=4)
+    assert (changed.n_samples, ens.config.n_samples, ens.params().n_samples) == (4, cfg.n_samples, cfg.n_samples)
+
+
 @pytest.mark.parametrize("change,message", [
     (lambda o, d, c: (o, d, c * 255), "divide 8-bit colours by 255"),
     (lambda o, d, c: (o, d * 2, c), "unit vectors"),

@@ -22,9 +22,12 @@ MAX_MEMBERS = 64
 MAX_STEPS = 10_000_000
 
 
-@dataclass
+@dataclass(frozen=True)
 class FieldConfig:
     """Model, renderer and optimiser options of an :class:`Ensemble`.
+
+    Frozen: an ensemble keeps the config it was made with, so one config may
+    be shared; ``dataclasses.replace(config, lr=0.02)`` makes a changed copy.
 
     Grid
     ----

@@ -213,10 +213,13 @@ class DatasetSource:
         raise UserError(f"{self.name}: a pre-captured dataset cannot render new poses")
 
     def _view(self, frame: Frame) -> View:
+        """The frame's view, read once; each call gets arrays of its own, as a scene's renders
+        are, so that a caller's edits (an augmentation in place) reach no other view."""
         key = id(frame)
         if key not in self._views:
             self._views[key] = load_view(frame, self.white_background)
-        return self._views[key]
+        view = self._views[key]
+        return View(view.rgb.copy(), view.distance.copy(), view.mask.copy(), view.camera)
 
     def __repr__(self):
         c = self.candidates[0]

@@ -584,3 +584,15 @@ def test_a_run_of_a_dataset_without_depth_exports_no_distances(tmp_path, mic_dir
     old = Run(open_source(mic_dir, n_candidates=6, n_heldout=2, resolution=25), cfg, tmp_path / "run",
               progress=False, log=lambda m: None).execute()
     assert old["finished"] and old["captured"] == rec["captured"]
+
+
+def test_a_views_arrays_are_the_callers_own(mic):
+    """Editing a view in place (an augmentation) changes no later view of the same frame."""
+    view = mic.candidate_view(0)
+    original = view.rgb.copy()
+    view.rgb[:] = 0
+    view.distance[:] = 1
+    view.mask[:] = True
+    again = mic.candidate_view(0)
+    np.testing.assert_array_equal(again.rgb, original)
+    assert again.rgb.max() > 0 and not again.mask.all()

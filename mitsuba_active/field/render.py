@@ -186,87 +186,95 @@ def composite(tau, rgb_s, t, S: int):
 
 
 class _MarchedComposite(dr.CustomOp):
-    """:func:`composite_marched` with its derivatives (see there)."""
+    """:func:`composite_marched` with its derivatives (see there), for a
+    tuple of members' raw features marched side by side."""
 
-    def eval(self, raw, t, delta, valid, S, density_bias, inv_diag):
-        self.raw, self.t, self.valid, self.S = raw, t, valid, S
+    def eval(self, raws, t, delta, valid, S, density_bias, inv_diag):
+        self.raws, self.t, self.valid, self.S = raws, t, valid, S
         self.density_bias, self.inv_diag = density_bias, inv_diag
         self.first = dr.arange(mi.UInt32, dr.width(t) // S) * S  # each ray's first sample
         self.delta = dr.gather(mi.Float, delta, self.first)
         self.per_ray = dr.width(valid) == dr.width(self.first)
-        _, rgb, dsum, opac, _ = self._march()
+        out, _ = self._march()
         # Evaluated here so that the derivative passes read the outputs
         # instead of marching the rays again.
-        dr.eval(rgb, dsum, opac)
-        self.out = (rgb, dsum, opac)
-        return rgb, dsum, opac
-
-    def _sample(self, i):
-        """(sigma, colour, t, live) of sample ``i`` of every ray (lanes = rays)."""
-        j = self.first + i
-        raw = dr.gather(mi.Vector4f, self.raw, j)
-        valid = self.valid if self.per_ray else dr.gather(mi.Bool, self.valid, j)
-        sigma, c, live = _raw_to_field(raw, valid, self.density_bias, self.inv_diag)
-        return sigma, c, dr.gather(mi.Float, self.t, j), live
+        dr.eval(out)
+        self.out = out
+        return out
 
     def _march(self, visit=None, acc=()):
-        """March every ray through its samples: returns the final (transmittance,
-        rgb, dsum, opac, acc). After :meth:`eval`, ``acc = visit(i, sigma, c,
-        t_i, live, w, trans_after, rest, acc)`` is called at each sample, where
-        ``rest`` is what the samples behind it contribute to (rgb, dsum, opac):
-        the outputs minus the running sums up to and including this sample;
-        ``acc`` is loop state (per ray)."""
+        """March every ray through its samples, all members in one loop:
+        returns the members' final (rgb, dsum, opac) and ``acc``. After
+        :meth:`eval`, ``acc = visit(k, j, sigma, c, t_i, live, w, trans_after,
+        rest, acc)`` is called at each sample ``j`` of each member ``k``, where
+        ``rest`` is what the samples behind it contribute to (rgb, dsum,
+        opac): the outputs minus the running sums up to and including this
+        sample; ``acc`` is loop state (per ray)."""
         z = dr.zeros(mi.Float, dr.width(self.delta))
 
-        def step(i, trans, p_rgb, p_dsum, p_opac, acc):
-            sigma, c, t_i, live = self._sample(i)
-            alpha_c = dr.exp(-sigma * self.delta)  # 1 - alpha
-            w = trans * (1.0 - alpha_c)
-            p_rgb, p_dsum, p_opac = dr.fma(c, w, p_rgb), dr.fma(w, t_i, p_dsum), p_opac + w
-            trans_after = trans * alpha_c
-            if visit is not None:
-                rest = (self.out[0] - p_rgb, self.out[1] - p_dsum, self.out[2] - p_opac)
-                acc = visit(i, sigma, c, t_i, live, w, trans_after, rest, acc)
-            return i + 1, trans_after, p_rgb, p_dsum, p_opac, acc
+        def step(i, sums, acc):
+            j = self.first + i
+            valid = self.valid if self.per_ray else dr.gather(mi.Bool, self.valid, j)
+            t_i = dr.gather(mi.Float, self.t, j)  # read once for all members
+            marched = []
+            for k, (trans, p_rgb, p_dsum, p_opac) in enumerate(sums):
+                raw = dr.gather(mi.Vector4f, self.raws[k], j)
+                sigma, c, live = _raw_to_field(raw, valid, self.density_bias, self.inv_diag)
+                alpha_c = dr.exp(-sigma * self.delta)  # 1 - alpha
+                w = trans * (1.0 - alpha_c)
+                p_rgb, p_dsum, p_opac = dr.fma(c, w, p_rgb), dr.fma(w, t_i, p_dsum), p_opac + w
+                trans_after = trans * alpha_c
+                if visit is not None:
+                    out = self.out[k]
+                    rest = (out[0] - p_rgb, out[1] - p_dsum, out[2] - p_opac)
+                    acc = visit(k, j, sigma, c, t_i, live, w, trans_after, rest, acc)
+                marched.append((trans_after, p_rgb, p_dsum, p_opac))
+            return i + 1, tuple(marched), acc
 
-        state = (mi.UInt32(0), z + 1.0, mi.Color3f(z), mi.Float(z), mi.Float(z), acc)
-        return dr.while_loop(state, lambda i, *_: i < self.S, step)[1:]
+        start = tuple((z + 1.0, mi.Color3f(z), mi.Float(z), mi.Float(z)) for _ in self.raws)
+        _, sums, acc = dr.while_loop((mi.UInt32(0), start, acc), lambda i, *_: i < self.S, step)
+        return tuple(member[1:] for member in sums), acc
 
     def backward(self):
-        g_rgb, g_dsum, g_opac = self.grad_out()
+        g_out = self.grad_out()
         n = dr.width(self.t)
         # The 4 gradients of a sample side by side: one packet store per lane
         # in the loop instead of 4 scattered ones. The loop writes every
-        # sample, so the array needs no zeroing first.
-        packed = dr.empty(mi.Float, 4 * n)
+        # sample, so the arrays need no zeroing first.
+        packed = [dr.empty(mi.Float, 4 * n) for _ in self.raws]
         XF = type(mi.ArrayXf())
 
-        def visit(i, sigma, c, t_i, live, w, trans_after, rest, acc):
+        def visit(k, j, sigma, c, t_i, live, w, trans_after, rest, acc):
             # d(output)/d(tau_i) = T_{i+1} v_i - (what the samples behind i contribute),
             # with v_i = (colour, t_i, 1); d(rgb)/d(colour_i) = w_i.
+            g_rgb, g_dsum, g_opac = g_out[k]
             g_tau = (dr.dot(g_rgb, dr.fma(c, trans_after, -rest[0])) + g_dsum * dr.fma(t_i, trans_after, -rest[1])
                      + g_opac * (trans_after - rest[2]))
             g_c = [g_rgb[ch] * w * c[ch] * (1.0 - c[ch]) for ch in range(3)]
-            dr.scatter(packed, XF(dr.select(live, g_tau * self.delta * sigma, 0.0), *g_c), self.first + i)
+            dr.scatter(packed[k], XF(dr.select(live, g_tau * self.delta * sigma, 0.0), *g_c), j)
             return acc
 
         self._march(visit)
-        g = dr.gather(XF, packed, dr.arange(mi.UInt32, n), shape=(4, n))
-        self.set_grad_in("raw", mi.Vector4f(g[0], g[1], g[2], g[3]))
+        ids = dr.arange(mi.UInt32, n)
+        grads = [dr.gather(XF, member, ids, shape=(4, n)) for member in packed]
+        self.set_grad_in("raws", tuple(mi.Vector4f(g[0], g[1], g[2], g[3]) for g in grads))
 
     def forward(self):
-        d_raw = self.grad_in("raw")
+        d_raws = self.grad_in("raws")
 
-        def visit(i, sigma, c, t_i, live, w, trans_after, rest, acc):
-            d = dr.gather(mi.Vector4f, d_raw, self.first + i)
+        def visit(k, j, sigma, c, t_i, live, w, trans_after, rest, acc):
+            d = dr.gather(mi.Vector4f, d_raws[k], j)
             d_tau = dr.select(live, d[0] * self.delta * sigma, 0.0)
             d_c = mi.Color3f(*[d[ch + 1] * c[ch] * (1.0 - c[ch]) for ch in range(3)])
-            return (acc[0] + d_tau * dr.fma(c, trans_after, -rest[0]) + w * d_c,
-                    acc[1] + d_tau * dr.fma(t_i, trans_after, -rest[1]),
-                    acc[2] + d_tau * (trans_after - rest[2]))
+            d_rgb, d_dsum, d_opac = acc[k]
+            member = (d_rgb + d_tau * dr.fma(c, trans_after, -rest[0]) + w * d_c,
+                      d_dsum + d_tau * dr.fma(t_i, trans_after, -rest[1]),
+                      d_opac + d_tau * (trans_after - rest[2]))
+            return acc[:k] + (member,) + acc[k + 1:]
 
         z = dr.zeros(mi.Float, dr.width(self.delta))
-        self.set_grad_out(self._march(visit, (mi.Color3f(z), mi.Float(z), mi.Float(z)))[-1])
+        start = tuple((mi.Color3f(z), mi.Float(z), mi.Float(z)) for _ in self.raws)
+        self.set_grad_out(self._march(visit, start)[1])
 
     def name(self):
         return "composite_marched"
@@ -285,10 +293,12 @@ def composite_marched(raw, t, delta, valid, S: int, density_bias: float, inv_dia
     outputs for what the samples behind it contribute (the closed form of
     Instant-NGP's renderer). This avoids the per-sample arrays of the blocked
     reductions and their adjoints, whose memory traffic grows with the
-    members of an ensemble.
+    members of an ensemble. Several members' features (a list) are marched
+    in the same loop, which reads the samples' distances once for all.
 
     Args:
-        raw: ``mi.Vector4f`` summed grid features per sample (R*S);
+        raw: ``mi.Vector4f`` summed grid features per sample (R*S), or a
+            list of them, one per member;
         t, delta: per-sample distance and bin length (R*S; ``delta`` is
             read at each ray's first sample), not differentiated;
         valid: ``mi.Bool`` per sample (R*S), or per ray (R) where all of a
@@ -296,9 +306,12 @@ def composite_marched(raw, t, delta, valid, S: int, density_bias: float, inv_dia
             skipped) have no density.
     Returns:
         (rgb ``mi.Color3f``, distance sum ``sum w t``, opacity ``sum w``),
-        each of length R, as :func:`composite` returns them.
+        each of length R, as :func:`composite` returns them; for a list,
+        a list of such tuples, one per member.
     """
-    return dr.custom(_MarchedComposite, raw, t, delta, valid, int(S), float(density_bias), float(inv_diag))
+    raws = tuple(raw) if isinstance(raw, (list, tuple)) else (raw,)
+    out = dr.custom(_MarchedComposite, raws, t, delta, valid, int(S), float(density_bias), float(inv_diag))
+    return list(out) if isinstance(raw, (list, tuple)) else out[0]
 
 
 def lookup_samples(params: FieldParams, s: dict, member=None):
@@ -346,25 +359,31 @@ def _marching(s: dict, return_weights: bool) -> bool:
             and not dr.grad_enabled(s["t"], s["delta"]))
 
 
-def _shade(params: FieldParams, s: dict, raw, member, return_weights=False):
-    """Composite one member's evaluated raw features (see render_flat)."""
+def _composited(params: FieldParams, s: dict, raws: list, members: list, return_weights=False) -> list:
+    """Composite the evaluated raw features of the members ``members`` (one
+    ``raws`` each; see render_flat): marched together, or one by one with
+    the blocked reductions."""
     S = int(params.n_samples)
     if _marching(s, return_weights):
         # Without empty-space skipping a sample is valid where its ray is.
         valid = s["valid"] if params.occupancy is not None else s["ray_valid"]
-        rgb, dsum, opac = composite_marched(raw, s["t"], s["delta"], valid, S, params.density_bias, 1.0 / params.diag)
-        w = None
+        sums = composite_marched(raws, s["t"], s["delta"], valid, S, params.density_bias, 1.0 / params.diag)
+        sums = [(rgb, dsum, opac, None) for rgb, dsum, opac in sums]
     else:
-        sigma, rgb_s = field_at(params, s["u"], member, s["valid"], raw=raw)
-        w, rgb, dsum, opac = composite(sigma * s["delta"], rgb_s, s["t"], S)
-    bg = dr.gather(mi.Vector3f, params.background, mi.UInt32(member))
-    bg = mi.Color3f(*[dr.rcp(1.0 + dr.exp(-bg[c])) for c in range(3)])
-    rgb = rgb + (1.0 - opac) * bg
-    dist = dsum / dr.maximum(opac, 1e-6)
-    out = dict(rgb=rgb, distance=dist, opacity=opac)
-    if return_weights:
-        out["weights"] = w
-    return out
+        sums = []
+        for raw, member in zip(raws, members):
+            sigma, rgb_s = field_at(params, s["u"], member, s["valid"], raw=raw)
+            w, rgb, dsum, opac = composite(sigma * s["delta"], rgb_s, s["t"], S)
+            sums.append((rgb, dsum, opac, w))
+    outs = []
+    for member, (rgb, dsum, opac, w) in zip(members, sums):
+        bg = dr.gather(mi.Vector3f, params.background, mi.UInt32(member))
+        bg = mi.Color3f(*[dr.rcp(1.0 + dr.exp(-bg[c])) for c in range(3)])
+        out = dict(rgb=rgb + (1.0 - opac) * bg, distance=dsum / dr.maximum(opac, 1e-6), opacity=opac)
+        if return_weights:
+            out["weights"] = w
+        outs.append(out)
+    return outs
 
 
 def render_flat(params: FieldParams, o, d, member, jitter=None, return_weights=False):
@@ -389,7 +408,7 @@ def render_flat(params: FieldParams, o, d, member, jitter=None, return_weights=F
     # kernel: otherwise every blocked reduction below and every backward
     # kernel would re-trace and re-run the 8 * n_levels gathers.
     dr.eval(raw, s["t"], s["delta"])
-    return _shade(params, s, raw, mem, return_weights)
+    return _composited(params, s, [raw], [mem], return_weights)[0]
 
 
 def render_members(params: FieldParams, o, d, jitter=None, return_weights=False):
@@ -405,7 +424,7 @@ def render_members(params: FieldParams, o, d, jitter=None, return_weights=False)
     s = sample_along_rays(o, d, params, jitter)
     raws = lookup_samples(params, s)
     dr.eval(raws, s["t"], s["delta"])  # one gather kernel for all members
-    return [_shade(params, s, raw, k, return_weights) for k, raw in enumerate(raws)]
+    return _composited(params, s, raws, list(range(len(raws))), return_weights)
 
 
 def render_rays_dr(field, o, d, member=0):

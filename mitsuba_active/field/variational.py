@@ -32,7 +32,7 @@ import numpy as np
 from ..checks import is_number, is_whole
 from ..errors import UserError
 from .ensemble import Ensemble
-from .render import _shade, hash_u32, lookup_samples, sample_along_rays
+from .render import _composited, hash_u32, lookup_samples, sample_along_rays
 
 #: Defaults: the largest standard deviation of a raw feature (in logit
 #: units), the weight of the entropy term, and the renders whose colour
@@ -132,7 +132,7 @@ class VariationalField(Ensemble):
         s = sample_along_rays(o, d, params, jitter)
         mean, log_std, index = self._lookup(params, s)
         key = dr.opaque(mi.UInt32, (self.seed * 0x27D4EB2F + self._step * 0x165667B1) & 0xFFFFFFFF)
-        out = _shade(params, s, mean + dr.exp(log_std) * standard_normal4(index, key), 0)
+        out = _composited(params, s, [mean + dr.exp(log_std) * standard_normal4(index, key)], [0])[0]
         # Entropy of the Gaussian, up to a constant: the log-std summed over the
         # channels of the batch's samples inside the box, per channel and sample.
         entropy = dr.sum(dr.select(s["valid"], dr.sum(log_std), 0.0)) * (1.0 / (4 * dr.width(s["t"])))
@@ -146,7 +146,7 @@ class VariationalField(Ensemble):
         for k in range(self.draws):
             # Fixed draws: the same rays, in the same order, give the same prediction.
             key = dr.opaque(mi.UInt32, (self.seed * 0x9E3779B1 + k * 0x7FEB352D + 1) & 0xFFFFFFFF)
-            outs.append(_shade(params, s, mean + std * standard_normal4(index, key), 0))
+            outs.append(_composited(params, s, [mean + std * standard_normal4(index, key)], [0])[0])
         return outs
 
     def __repr__(self):

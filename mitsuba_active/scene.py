@@ -766,7 +766,8 @@ def load_scene(xml_path, **params) -> Scene:
     require_variant("loading a scene")
     if not isinstance(xml_path, (str, os.PathLike)):
         raise UserError(f"a scene XML is named by its path, got {type(xml_path).__name__}; a scene built in "
-                        "Python (a mitsuba.Scene or a scene dict) is read with scene_from_mitsuba")
+                        "Python (a mitsuba.Scene or a scene dict) is read with scene_from_mitsuba "
+                        "(a view source of it: SceneSource.from_mitsuba)")
     xml_path = Path(xml_path)
     if xml_path.is_dir():
         raise UserError(f"{xml_path} is a folder, not a scene XML file (a transforms.json dataset is read "

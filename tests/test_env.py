@@ -212,7 +212,8 @@ def test_a_scene_of_another_variant_is_named_so():
 def test_a_scene_dict_given_for_an_xml_says_how_to_read_it():
     from mitsuba_active.env import SceneSource
 
-    with pytest.raises(UserError, match="got dict; a scene built in Python .* scene_from_mitsuba"):
+    with pytest.raises(UserError, match="got dict; a scene built in Python .* scene_from_mitsuba "
+                                        "\\(a view source of it: SceneSource.from_mitsuba\\)"):
         SceneSource.from_xml(BALL_DICT)
 
 

@@ -455,6 +455,19 @@ def test_a_shared_config_cannot_change_an_ensemble_made_with_it():
     assert (changed.n_samples, ens.config.n_samples, ens.params().n_samples) == (4, cfg.n_samples, cfg.n_samples)
 
 
+def test_a_field_used_under_another_variant_says_which_to_set():
+    o, d, c, dist, hit = views([[0.0, 0.3, 2.2]], width=8, height=8)
+    ens = Ensemble(*BOX, n_members=2, config=tiny_config(), seed=0)
+    ens.set_rays(o, d, c, dist, hit)
+    variant = mi.variant()
+    with mi.variant_context("scalar_rgb"):
+        for call in (lambda: ens.train(1), lambda: ens.predict(o, d), lambda: ens.set_rays(o, d, c, dist, hit),
+                     lambda: ens.fisher_diag(o[:4], d[:4])):
+            with pytest.raises(UserError, match=f"made under Mitsuba variant '{variant}', but 'scalar_rgb' is set"):
+                call()
+    assert np.isfinite(ens.train(1)).all()  # back in its variant, it trains on
+
+
 @pytest.mark.parametrize("change,message", [
     (lambda o, d, c: (o, d, c * 255), "divide 8-bit colours by 255"),
     (lambda o, d, c: (o, d * 2, c), "unit vectors"),

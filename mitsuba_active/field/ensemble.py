@@ -97,6 +97,7 @@ class Ensemble:
     def __init__(self, bbox_min, bbox_max, n_members: int = 4,
                  config: FieldConfig | None = None, seed: int = 0):
         require_variant("Ensemble")
+        self._variant = mi.variant()  # its Dr.Jit arrays are of this variant's backend
         if config is not None and not isinstance(config, FieldConfig):
             raise UserError(f"Ensemble: config must be a FieldConfig (e.g. FieldConfig(n_levels=2)), "
                             f"got {type(config).__name__}")
@@ -158,8 +159,16 @@ class Ensemble:
                 self._opt.state[key] = (value, promoted, lr,
                                         (mi.UInt32(int(t)), mi.Float(m), mi.Float(v), None))
 
+    def _check_variant(self):
+        """UserError unless Mitsuba runs the variant this field was made in (its arrays are of
+        that variant's types: in another, every call would fail deep inside Dr.Jit)."""
+        if mi.variant() != self._variant:
+            raise UserError(f"this {type(self).__name__} was made under Mitsuba variant '{self._variant}', but "
+                            f"'{mi.variant()}' is set; call mitsuba.set_variant('{self._variant}') first")
+
     def params(self) -> FieldParams:
         """Current parameters as a :class:`FieldParams` (Dr.Jit arrays)."""
+        self._check_variant()
         return FieldParams(grid=self._opt["grid"], background=self._opt["background"],
                            layout=self.layout, box_min=self.box_min, box_max=self.box_max,
                            n_samples=int(self.config.n_samples),
@@ -215,6 +224,7 @@ class Ensemble:
                 it, e.g. when giving a loaded ensemble back the rays it was
                 trained on.
         """
+        self._check_variant()
         o, d = _rays(origins, directions, "set_rays")
         c = _triples(rgb, "set_rays", "rgb")
         m = o.shape[0]
@@ -308,6 +318,7 @@ class Ensemble:
             ``loss`` adds the distance and empty-ray terms. Call ``dr.backward(loss)`` and
             :meth:`optimizer_step` to take the step (what :meth:`train` does).
         """
+        self._check_variant()
         if self._rays is None:
             raise UserError("train: call set_rays() first")
         cfg = self.config
@@ -350,6 +361,7 @@ class Ensemble:
     def optimizer_step(self):
         """Apply one Adam update from the accumulated gradients (and refresh
         the occupancy grid when one is due)."""
+        self._check_variant()
         self._opt.step()
         self._step += 1
         cfg = self.config
@@ -486,6 +498,7 @@ class Ensemble:
         Returns:
             (P,) float64.
         """
+        self._check_variant()
         self._check_member(member)
         if not is_whole(probes) or probes < 1:
             raise UserError(f"fisher_diag: probes must be a whole number >= 1, got {probes!r}")

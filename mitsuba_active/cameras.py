@@ -383,8 +383,13 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     if rig == "xml":
         if scene.sensors_off_centre:
             warnings.warn(f"{scene.sensors_off_centre} of the {len(scene.sensors)} sensors of {scene.path} have a "
-                          "principal point offset, which rig 'xml' does not keep: their views are centred",
-                          stacklevel=2)
+                          "principal point offset (or a crop window off the film's centre), which rig 'xml' does "
+                          "not keep: their views are centred", stacklevel=2)
+        if scene.sensors_thin_lens:
+            warnings.warn(f"{scene.sensors_thin_lens} of the {len(scene.sensors)} sensors of {scene.path} are "
+                          "thin-lens cameras, which rig 'xml' renders as pinholes: no defocus", stacklevel=2)
+        for i, c in enumerate(scene.sensors):  # the poses of views are rigid camera-to-world motions
+            rigid_pose(c.to_world, f"the to_world of sensor {i} of {scene.path}")
         candidates = [c.with_resolution(width, height) for c in scene.sensors]
     else:
         candidates = make(n_candidates, 0.0)

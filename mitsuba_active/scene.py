@@ -12,6 +12,7 @@ import dataclasses
 import filecmp
 import hashlib
 import itertools
+import math
 import os
 import re
 import shutil
@@ -560,8 +561,12 @@ class Scene:
         floor: True when a shape has the id ``floor`` (as ``scene --floor``
             authors it): cameras below it would see its underside only.
         sensors_off_centre: how many of the XML's sensors have a principal
-            point offset, which :attr:`sensors` do not keep (their principal
-            point is the image centre).
+            point offset (or a crop window off the film's centre), which
+            :attr:`sensors` do not keep (their principal point is the image
+            centre; a crop window's field of view is kept).
+        sensors_thin_lens: how many of the XML's sensors are thin-lens
+            cameras with an aperture, which :attr:`sensors` do not keep (they
+            are pinholes: no defocus).
     """
 
     path: Path
@@ -574,6 +579,7 @@ class Scene:
     up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
     floor: bool = False
     sensors_off_centre: int = 0
+    sensors_thin_lens: int = 0
 
     @property
     def name(self) -> str:
@@ -830,20 +836,26 @@ def _describe(mi_scene, xml_path: Path, digest: str | None) -> Scene:
         # Squared distances (variances, errors) would overflow single precision.
         raise UserError(f"scene {xml_path} reaches {size:.3g} scene units from the origin, more than "
                         f"{MAX_SCENE_COORDINATE:.0e}; scale it down")
-    sensors, off_centre = [], 0
+    sensors, off_centre, thin_lens = [], 0, 0
     for s in mi_scene.sensors():
         sensor_params = mi.traverse(s)
         if "x_fov" not in sensor_params.keys():
             continue  # not a perspective camera
+        film = s.film()
+        full, size, offset = (np.array(v, dtype=np.float64) for v in (film.size(), film.crop_size(),
+                                                                      film.crop_offset()))
+        # A crop window sees part of the film's field of view; off the film's centre it is
+        # a principal point offset too.
         off_centre += any(float(sensor_params[key][0]) != 0 for key in ("principal_point_offset_x",
                                                                          "principal_point_offset_y")
-                          if key in sensor_params.keys())  # a thinlens camera has none
-        size = s.film().crop_size()
-        fov = float(sensor_params["x_fov"][0])
+                          if key in sensor_params.keys()) or bool(np.any(offset + size / 2 != full / 2))
+        thin_lens += "aperture_radius" in sensor_params.keys() and float(sensor_params["aperture_radius"][0]) > 0
+        fov = math.degrees(2 * math.atan(math.tan(math.radians(float(sensor_params["x_fov"][0])) / 2)
+                                         * size[0] / full[0]))
         m = np.array(s.world_transform().matrix, dtype=np.float64).reshape(4, 4)
         sensors.append(Camera(m, fov, int(size[0]), int(size[1]), float(s.near_clip()), float(s.far_clip())))
     up = snapped_up(sensors[:1])  # the first sensor's, as the scene's author set it up
     floor = any(shape.id() == "floor" for shape in mi_scene.shapes())
     return Scene(xml_path, mi_scene, lo, hi, digest, _is_interior(mi_scene, lo, hi, up), sensors, up, floor,
-                 off_centre)
+                 off_centre, thin_lens)
 

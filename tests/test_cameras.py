@@ -71,6 +71,44 @@ def test_xml_rig_says_it_centres_off_centre_sensors(tmp_path):
     assert load_scene(xml).sensors_off_centre == 0 and len(load_scene(xml).sensors) == 1
 
 
+def test_xml_rig_keeps_a_crop_windows_view_and_names_what_it_does_not_keep(tmp_path):
+    import math
+
+    def scene(sensor_type="perspective", extra="", film="", transform=""):
+        xml = tmp_path / "s.xml"
+        xml.write_text('<scene version="3.0.0"><emitter type="constant"/><shape type="sphere"/>'
+                       f'<sensor type="{sensor_type}"><float name="fov" value="40"/>{extra}<transform name="to_world">'
+                       f'{transform}<lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>'
+                       f'<film type="hdrfilm"><integer name="width" value="32"/><integer name="height" value="32"/>'
+                       f'{film}</film></sensor></scene>')
+        return load_scene(xml)
+
+    def crop(x, y):
+        return "".join(f'<integer name="{name}" value="{value}"/>' for name, value in
+                       (("crop_width", 16), ("crop_height", 16), ("crop_offset_x", x), ("crop_offset_y", y)))
+
+    # A centred crop window sees the middle of the film's field of view: half as wide in tangent.
+    centred = scene(film=crop(8, 8))
+    (cam,) = centred.sensors
+    assert (cam.width, cam.height, centred.sensors_off_centre) == (16, 16, 0)
+    assert math.isclose(math.tan(math.radians(cam.fov) / 2), math.tan(math.radians(20)) / 2, rel_tol=1e-6)
+    # Off the film's centre, it looks off-axis: centred, as a principal point offset is, with a warning.
+    corner = scene(film=crop(16, 0))
+    assert corner.sensors_off_centre == 1
+    with pytest.warns(UserWarning, match="a crop window off the film's centre"):
+        scene_rigs(corner, "xml", n_heldout=2, width=8)
+    # A thin lens is rendered as a pinhole.
+    thin = scene("thinlens", '<float name="aperture_radius" value="0.1"/><float name="focus_distance" value="4"/>')
+    assert thin.sensors_thin_lens == 1
+    with pytest.warns(UserWarning, match="1 of the 1 sensors of .*s.xml are thin-lens cameras, .* no defocus"):
+        scene_rigs(thin, "xml", n_heldout=2, width=8)
+    # A mirrored sensor has no camera pose: refused for rig 'xml', while other rigs need no sensor.
+    mirrored = scene(transform='<scale x="-1"/>')
+    with pytest.raises(UserError, match="the to_world of sensor 0 of .*s.xml is not a rigid motion: .* det -1"):
+        scene_rigs(mirrored, "xml", n_heldout=2, width=8)
+    assert len(scene_rigs(mirrored, "sphere", 4, 2, 8)[0]) == 4
+
+
 def test_rays_agree_with_intrinsics_and_pose():
     cam = Camera(look_at([1, 2, 3], [0, 0, 0]), fov=60.0, width=8, height=6)
     o, d = camera_rays(cam)

@@ -112,7 +112,7 @@ def set_variant(name: str | None = None) -> str:
     variant set by the caller (scalar, spectral) is switched, with a warning.
     ``cuda_ad_rgb`` needs a GPU, and no LLVM.
     """
-    name = name or os.environ.get("MITSUBA_ACTIVE_VARIANT")
+    name = name or os.environ.get("MITSUBA_ACTIVE_VARIANT") or None  # set but empty: unset
     if name is not None and name not in VARIANTS:
         raise UserError(f"unknown variant '{name}'; choose one of {', '.join(VARIANTS)}")
     # Only a Mitsuba the caller already imported can have a variant set.

@@ -194,6 +194,13 @@ def test_gpu_variant_without_a_gpu_says_so():
     assert "needs an NVIDIA GPU" in proc.stderr and "unset MITSUBA_ACTIVE_VARIANT" in proc.stderr
 
 
+def test_an_empty_variant_setting_counts_as_unset():
+    code = "import mitsuba_active, mitsuba as mi; print(mi.variant())"
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=dict(os.environ, MITSUBA_ACTIVE_VARIANT=""))
+    assert proc.returncode == 0 and proc.stdout.strip() == "llvm_ad_rgb", proc.stderr
+
+
 def test_llvm_search_rejects_old_versions(monkeypatch, tmp_path):
     from mitsuba_active import variant
 

@@ -110,6 +110,13 @@ def test_what_it_does_not_do_is_refused():
     field = VariationalField(*BOX, config=tiny_config())
     with pytest.raises(UserError, match="fisher_diag needs an Ensemble"):
         field.fisher_diag(*camera_rays([0.0, 0.0, 2.0], width=4, height=4))
+    from mitsuba_active.field import render_rays_dr
+
+    o, d = camera_rays([0.0, 0.0, 2.0], width=4, height=4)
+    o, d = mi.Point3f(o.T), mi.Vector3f(d.T)
+    with pytest.raises(UserError, match="renders here as member 0 only"):
+        render_rays_dr(field, o, d, 1)  # slot 1: the features' scales, no field
+    assert dr.width(render_rays_dr(field, o, d, 0)[0]) == 16
 
 
 def test_planner_options():

@@ -452,5 +452,10 @@ def render_rays_dr(field, o, d, member=0):
         top = int(dr.max(member)[0]) if dr.width(member) else None
     if top is not None and not 0 <= top < params.n_members:
         raise UserError(f"member index {top} out of range: the field has {params.n_members} member(s)")
+    from .variational import VariationalField
+
+    if isinstance(field, VariationalField) and top not in (None, 0):  # its slot 1 holds the scales
+        raise UserError("a VariationalField renders here as member 0 only: its features' mean "
+                        "(its draws: predict, or the radiance_field plugin)")
     out = render_flat(params, mi.Point3f(o), mi.Vector3f(d), mi.UInt32(member))
     return out["rgb"], out["distance"], out["opacity"]

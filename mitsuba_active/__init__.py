@@ -17,7 +17,7 @@ from .errors import SetupError, UserError
 from .interrupts import interruptible_imports
 from .variant import set_variant
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 
 def _one_line_setup_error(exc_type, exc, tb, _previous=sys.excepthook):

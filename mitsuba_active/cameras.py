@@ -224,6 +224,24 @@ def fibonacci_directions(n: int, offset: float = 0.0, y_min: float = -1.0, y_max
     return np.stack([r * np.cos(phi), y, r * np.sin(phi)], axis=1)
 
 
+def heldout_directions(candidates: np.ndarray, n: int, y_min: float = -1.0, y_max: float = 1.0) -> np.ndarray:
+    """(n, 3) unit vectors in the band ``y_min <= y <= y_max`` that keep away from the (C, 3) unit
+    vectors ``candidates``: each in turn the point of a fine spiral farthest from the candidates and
+    from the ones chosen before it (farthest-point sampling), so held-out views lie in the gaps
+    between candidate views, never next to one, and spread over the band."""
+    from scipy.spatial import cKDTree
+
+    pool = fibonacci_directions(max(4096, 8 * (len(candidates) + n)), 0.5, y_min, y_max)
+    gap = cKDTree(candidates).query(pool)[0] if len(candidates) else np.full(len(pool), np.inf)
+    tree, chosen = cKDTree(pool), []
+    for _ in range(n):
+        i = int(np.argmax(gap))  # chord lengths, in the order of angles
+        chosen.append(i)
+        near = np.asarray(tree.query_ball_point(pool[i], min(gap[i], 2.0)), dtype=np.int64)
+        gap[near] = np.minimum(gap[near], np.linalg.norm(pool[near] - pool[i], axis=1))
+    return pool[chosen]
+
+
 def snapped_up(cameras) -> np.ndarray:
     """The world axis (3,) closest to the cameras' mean up vector, with its sign:
     the up axis of a scene or dataset as its cameras were set up (Y without cameras)."""
@@ -258,8 +276,12 @@ def fibonacci_sphere(n, center, radius, fov=40.0, width=64, height=64, offset=0.
     return _cameras_around(center, radius, fibonacci_directions(n, offset), up, fov, width, height, near, far)
 
 
+#: Lowest elevation (degrees) of the cameras of :func:`hemisphere`.
+HEMISPHERE_MIN_ELEVATION = 5.0
+
+
 def hemisphere(n, center, radius, fov=40.0, width=64, height=64, offset=0.0, up=(0, 1, 0),
-               min_elevation=5.0, near=1e-3, far=1e4):
+               min_elevation=HEMISPHERE_MIN_ELEVATION, near=1e-3, far=1e4):
     """``n`` cameras on the upper hemisphere (towards ``up``), above ``min_elevation`` degrees."""
     _check_count(n)
     dirs = fibonacci_directions(n, offset, y_min=math.sin(math.radians(min_elevation)), y_max=1.0)
@@ -325,8 +347,11 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     sensors as candidates, with their poses, fields of view and clip
     distances (held-out views then come from a generated rig);
     ``auto`` picks ``interior`` for rooms, ``hemisphere`` for an object on a
-    floor (a shape with the id ``floor``), else ``sphere``. The held-out rig
-    is the same kind with a shifted spiral, and never coincides with a candidate.
+    floor (a shape with the id ``floor``), else ``sphere``. Held-out views
+    of ``sphere`` and ``hemisphere`` (also under ``xml``) lie in the gaps
+    between the candidates' viewing directions (:func:`heldout_directions`);
+    those of ``rings`` and ``interior`` are the same kind of rig shifted. None
+    coincides with a candidate.
 
     Images are ``width`` pixels wide and ``height`` high; ``height`` defaults
     to ``width``, or under ``xml`` to the aspect ratio of the sensors' films.
@@ -393,7 +418,16 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
         candidates = [c.with_resolution(width, height) for c in scene.sensors]
     else:
         candidates = make(n_candidates, 0.0)
-    heldout = make(n_heldout, 0.5)
+    if generated in ("sphere", "hemisphere"):
+        # Held-out views in the gaps between the candidates' viewing directions.
+        y_min = math.sin(math.radians(HEMISPHERE_MIN_ELEVATION)) if generated == "hemisphere" else -1.0
+        dirs = (np.stack([c.position for c in candidates]) - scene.center) @ up_frame(scene.up)
+        length = np.linalg.norm(dirs, axis=1, keepdims=True)
+        dirs = dirs[length[:, 0] > 0] / length[length[:, 0] > 0]
+        heldout = _cameras_around(scene.center, radius, heldout_directions(dirs, n_heldout, y_min), scene.up, fov,
+                                  width, height, near, far)
+    else:
+        heldout = make(n_heldout, 0.5)
     check_disjoint(candidates, heldout)
     return candidates, heldout
 

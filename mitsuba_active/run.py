@@ -670,8 +670,12 @@ class Run:
                                 "choose another run folder (--out)")
             if (rec.get("candidates") != [c.to_dict() for c in self.source.candidates]
                     or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):
+                made_with = rec.get("versions", {}).get("mitsuba_active")
+                now = self.versions["mitsuba_active"]
+                why = (f" (it was made with mitsuba-active {made_with}, whose rigs place cameras otherwise than "
+                       f"{now}'s)" if made_with not in (None, now) else "")
                 raise UserError(f"{self.out} holds a run whose candidate or held-out cameras are not the view "
-                                "source's; choose another run folder (--out)")
+                                f"source's{why}; choose another run folder (--out)")
             captured = rec["captured"]
             if other_planner_code(rec, self.planner_digest):
                 raise UserError(f"{self.out} holds a run made with another version of the planner's code "

@@ -568,5 +568,12 @@ def test_a_run_folder_refuses_a_source_with_other_cameras(source, tmp_path):
     _run(source, tmp_path / "run", planner="even", budget=2, eval_views=[2])
     turned = [dataclasses.replace(c, fov=c.fov + 1.0) for c in source.candidates]
     other = SceneSource(source.scene, turned, source.heldout, spp=TINY["spp"], cache_dir=False)
-    with pytest.raises(UserError, match="holds a run whose candidate or held-out cameras are not the view source's"):
+    with pytest.raises(UserError, match="holds a run whose candidate or held-out cameras are not the view source's;"):
+        _run(other, tmp_path / "run", planner="even", budget=2, eval_views=[2])
+    # A run of an earlier version, whose rigs placed cameras otherwise, says so.
+    record = json.loads((tmp_path / "run" / "run.json").read_text())
+    record["versions"]["mitsuba_active"] = "0.0.1"
+    (tmp_path / "run" / "run.json").write_text(json.dumps(record))
+    with pytest.raises(UserError, match="cameras are not the view source's \\(it was made with mitsuba-active 0.0.1, "
+                                        "whose rigs place cameras otherwise"):
         _run(other, tmp_path / "run", planner="even", budget=2, eval_views=[2])

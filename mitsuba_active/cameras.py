@@ -224,22 +224,28 @@ def fibonacci_directions(n: int, offset: float = 0.0, y_min: float = -1.0, y_max
     return np.stack([r * np.cos(phi), y, r * np.sin(phi)], axis=1)
 
 
-def heldout_directions(candidates: np.ndarray, n: int, y_min: float = -1.0, y_max: float = 1.0) -> np.ndarray:
-    """(n, 3) unit vectors in the band ``y_min <= y <= y_max`` that keep away from the (C, 3) unit
-    vectors ``candidates``: each in turn the point of a fine spiral farthest from the candidates and
-    from the ones chosen before it (farthest-point sampling), so held-out views lie in the gaps
-    between candidate views, never next to one, and spread over the band."""
+def farthest_points(candidates: np.ndarray, pool: np.ndarray, n: int) -> list[int]:
+    """Indices of at most ``n`` of the (P, 3) unit vectors ``pool`` that keep away from the (C, 3)
+    unit vectors ``candidates``: each in turn the one farthest from the candidates and from the
+    ones chosen before it (farthest-point sampling), so held-out views lie in the gaps between
+    candidate views, never next to one, and spread out. Fewer than ``n`` only when the pool runs out."""
     from scipy.spatial import cKDTree
 
-    pool = fibonacci_directions(max(4096, 8 * (len(candidates) + n)), 0.5, y_min, y_max)
+    pool = np.asarray(pool, dtype=np.float64)
     gap = cKDTree(candidates).query(pool)[0] if len(candidates) else np.full(len(pool), np.inf)
     tree, chosen = cKDTree(pool), []
-    for _ in range(n):
+    while len(chosen) < n and len(pool) and gap.max() > 0:
         i = int(np.argmax(gap))  # chord lengths, in the order of angles
         chosen.append(i)
         near = np.asarray(tree.query_ball_point(pool[i], min(gap[i], 2.0)), dtype=np.int64)
         gap[near] = np.minimum(gap[near], np.linalg.norm(pool[near] - pool[i], axis=1))
-    return pool[chosen]
+        gap[i] = 0.0
+    return chosen
+
+
+def _pool_size(n_candidates: int, n_heldout: int) -> int:
+    """Points of the spiral that held-out views are picked from: fine beside the candidates' spacing."""
+    return max(4096, 8 * (n_candidates + n_heldout))
 
 
 def snapped_up(cameras) -> np.ndarray:
@@ -312,7 +318,11 @@ def rings(n, center, radius, fov=40.0, width=64, height=64, offset=0.0, up=(0, 1
     return _cameras_around(center, radius, np.array(dirs), up, fov, width, height, near, far)
 
 
-def interior(n, bbox_min, bbox_max, fov=70.0, width=64, height=64, offset=0.0, spread=0.4,
+#: Size of the ellipsoid of :func:`interior` cameras: a fraction of the room's half extents.
+INTERIOR_SPREAD = 0.4
+
+
+def interior(n, bbox_min, bbox_max, fov=70.0, width=64, height=64, offset=0.0, spread=INTERIOR_SPREAD,
              near=1e-3, far=1e4, up=(0, 1, 0)):
     """``n`` cameras inside a room, each looking across it through the centre.
 
@@ -323,7 +333,12 @@ def interior(n, bbox_min, bbox_max, fov=70.0, width=64, height=64, offset=0.0, s
     _check_count(n)
     lo, hi = np.asarray(bbox_min, dtype=np.float64), np.asarray(bbox_max, dtype=np.float64)
     center, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-    pos = center + spread * half * fibonacci_directions(n, offset)
+    return _cameras_inside(center, spread * half, fibonacci_directions(n, offset), up, fov, width, height, near, far)
+
+
+def _cameras_inside(center, axes, dirs, up, fov, width, height, near, far):
+    """Cameras at ``center + axes * dirs`` (on an ellipsoid of semi-axes ``axes``) looking at ``center``."""
+    pos = np.asarray(center, dtype=np.float64) + np.asarray(axes) * np.asarray(dirs)
     return [Camera(look_at(p, center, up), fov, width, height, near, far) for p in pos]
 
 
@@ -348,10 +363,10 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     distances (held-out views then come from a generated rig);
     ``auto`` picks ``interior`` for rooms, ``hemisphere`` for an object on a
     floor (a shape with the id ``floor``), else ``sphere``. Held-out views
-    of ``sphere`` and ``hemisphere`` (also under ``xml``) lie in the gaps
-    between the candidates' viewing directions (:func:`heldout_directions`);
-    those of ``rings`` and ``interior`` are the same kind of rig shifted. None
-    coincides with a candidate.
+    are of the same kind as the candidates (under ``xml``: of the rig ``auto``
+    would pick) and lie in the gaps between the candidates' places on the rig
+    (:func:`farthest_points`), except under ``rings``, whose held-out rings
+    are shifted in elevation and azimuth. None coincides with a candidate.
 
     Images are ``width`` pixels wide and ``height`` high; ``height`` defaults
     to ``width``, or under ``xml`` to the aspect ratio of the sensors' films.
@@ -379,20 +394,24 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     if generated == "interior":
         fov = 70.0 if fov is None else fov
         near, far = clip_range(scene.radius, 2.0 * scene.radius)
+        lo, hi = np.asarray(scene.bbox_min, dtype=np.float64), np.asarray(scene.bbox_max, dtype=np.float64)
+        centre, axes, frame, band = 0.5 * (lo + hi), INTERIOR_SPREAD * 0.5 * (hi - lo), np.eye(3), (-1.0, 1.0)
+        at = lambda dirs: _cameras_inside(centre, axes, dirs, scene.up, fov, width, height, near, far)  # noqa: E731
+        # Cameras inside furniture would see nothing else.
+        free = lambda dirs: scene.free_space(centre + axes * dirs)  # noqa: E731
 
-        def make(n, off):
-            # Over-generate, then drop cameras that would sit inside furniture.
-            cams = interior(4 * n, scene.bbox_min, scene.bbox_max, fov, width, height, off, near=near, far=far,
-                            up=scene.up)
-            free = scene.free_space(np.stack([c.position for c in cams]))
-            cams = [c for c, ok in zip(cams, free) if ok]
-            if len(cams) < n:
-                hint = ("ask for fewer views" if scene.interior else
-                        f"{scene.path} is an object, not a room: use --rig sphere or hemisphere")
-                raise UserError(f"the interior rig found room for {len(cams)} of the {n} "
-                                f"{'candidate' if off == 0.0 else 'held-out'} cameras inside {scene.path}, "
-                                f"the rest being inside solid objects; {hint}")
-            return cams[:: max(1, len(cams) // n)][:n]
+        def short(found, n, what):
+            hint = ("ask for fewer views" if scene.interior else
+                    f"{scene.path} is an object, not a room: use --rig sphere or hemisphere")
+            return UserError(f"the interior rig found room for {found} of the {n} {what} cameras inside "
+                             f"{scene.path}, the rest being inside solid objects; {hint}")
+
+        def make(n, off):  # over-generated, then thinned out evenly
+            dirs = fibonacci_directions(4 * n, off)
+            dirs = dirs[free(dirs)]
+            if len(dirs) < n:
+                raise short(len(dirs), n, "candidate" if off == 0.0 else "held-out")
+            return at(dirs[:: max(1, len(dirs) // n)][:n])
     else:
         fov = 40.0 if fov is None else fov
         if not 0.0 < fov < 180.0:
@@ -402,6 +421,10 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
             half_fov = math.atan(math.tan(half_fov) * height / width)
         radius = 1.05 * scene.radius / math.sin(half_fov)
         near, far = clip_range(scene.radius, radius + scene.radius)
+        centre, axes, frame = scene.center, radius, up_frame(scene.up)
+        band = (math.sin(math.radians(HEMISPHERE_MIN_ELEVATION)) if generated == "hemisphere" else -1.0, 1.0)
+        at = lambda dirs: _cameras_around(centre, radius, dirs, scene.up, fov, width, height, near, far)  # noqa: E731
+        free = short = None
         fn = {"sphere": fibonacci_sphere, "hemisphere": hemisphere, "rings": rings}[generated]
         make = lambda n, off: fn(n, scene.center, radius, fov, width, height, off, up=scene.up,  # noqa: E731
                                  near=near, far=far)
@@ -418,16 +441,21 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
         candidates = [c.with_resolution(width, height) for c in scene.sensors]
     else:
         candidates = make(n_candidates, 0.0)
-    if generated in ("sphere", "hemisphere"):
-        # Held-out views in the gaps between the candidates' viewing directions.
-        y_min = math.sin(math.radians(HEMISPHERE_MIN_ELEVATION)) if generated == "hemisphere" else -1.0
-        dirs = (np.stack([c.position for c in candidates]) - scene.center) @ up_frame(scene.up)
-        length = np.linalg.norm(dirs, axis=1, keepdims=True)
-        dirs = dirs[length[:, 0] > 0] / length[length[:, 0] > 0]
-        heldout = _cameras_around(scene.center, radius, heldout_directions(dirs, n_heldout, y_min), scene.up, fov,
-                                  width, height, near, far)
-    else:
+    if generated == "rings":  # its held-out rings are shifted in elevation and azimuth
         heldout = make(n_heldout, 0.5)
+    else:
+        # Held-out views in the gaps between the candidates' places on the rig, as seen from its centre
+        # (in the rig's own frame, where a hemisphere is the band above y_min).
+        places = ((np.stack([c.position for c in candidates]) - centre) / axes) @ frame
+        length = np.linalg.norm(places, axis=1, keepdims=True)
+        places = places[length[:, 0] > 0] / length[length[:, 0] > 0]
+        spiral = fibonacci_directions(_pool_size(len(candidates), n_heldout), 0.5, *band)
+        if free is not None:
+            spiral = spiral[free(spiral)]
+        chosen = spiral[farthest_points(places, spiral, n_heldout)]
+        if len(chosen) < n_heldout:
+            raise short(len(chosen), n_heldout, "held-out")
+        heldout = at(chosen)
     check_disjoint(candidates, heldout)
     return candidates, heldout
 

@@ -44,19 +44,24 @@ def test_heldout_offset_never_reproduces_a_candidate(rig):
         check_disjoint(rig(n_cand, (0, 0, 0), 2.0), rig(n_held, (0, 0, 0), 2.0, offset=0.5))
 
 
-@pytest.mark.parametrize("rig", ["sphere", "hemisphere"])
-def test_heldout_views_lie_between_candidates(spot_xml, rig):
+@pytest.mark.parametrize("rig", ["sphere", "hemisphere", "interior"])
+def test_heldout_views_lie_between_candidates(spot_xml, shared_data, rig):
     """Each held-out view keeps away from every candidate (a held-out view next to a candidate would
     score a planner that picked it on a view it trained on) and from the other held-out views."""
-    scene = load_scene(spot_xml)
+    scene = load_scene(shared_data / "mitsuba/cbox/cbox.xml" if rig == "interior" else spot_xml)
     cands, held = scene_rigs(scene, rig, 100, 20, 8)
-    c, h = (np.stack([cam.forward for cam in cams]) for cams in (cands, held))
+    # Where each camera sits on its rig, seen from the rig's centre (all look at it).
+    centre = 0.5 * (scene.bbox_min + scene.bbox_max) if rig == "interior" else scene.center
+    c, h = (np.stack([cam.position - centre for cam in cams]) for cams in (cands, held))
+    if rig == "interior":  # an ellipsoid: compare places on it as directions of the unit sphere
+        c, h = c / (scene.bbox_max - scene.bbox_min), h / (scene.bbox_max - scene.bbox_min)
+    c, h = c / np.linalg.norm(c, axis=1, keepdims=True), h / np.linalg.norm(h, axis=1, keepdims=True)
     angle = lambda a, b: np.degrees(np.arccos(np.clip(a @ b.T, -1.0, 1.0)))  # noqa: E731
     spacing = np.median(np.sort(angle(c, c), axis=1)[:, 1])  # a candidate's nearest neighbour
     assert angle(h, c).min() > 0.45 * spacing
     assert np.sort(angle(h, h), axis=1)[:, 1].min() > 0.45 * spacing
     if rig == "hemisphere":  # above the floor, as the candidates are
-        assert (np.degrees(np.arcsin(np.clip(-h @ scene.up, -1, 1))) > 4.9).all()
+        assert (np.degrees(np.arcsin(np.clip(h @ scene.up, -1, 1))) > 4.9).all()
 
 
 def test_xml_rig_uses_the_scenes_own_sensor(shared_data):

@@ -131,6 +131,12 @@ def test_a_planning_state_without_a_generator_repeats_its_picks():
     state_draw = PlanningState(CANDS, [0]).rng.random(4)
     assert np.array_equal(state_draw, planner_rng(0).random(4))
     assert not np.allclose(state_draw, np.random.default_rng(0).random(4))
+    # Nor the stream of any ensemble member's initial features.
+    from mitsuba_active.field.config import MAX_MEMBERS
+    from mitsuba_active.field.ensemble import _member_seeds
+
+    for member in _member_seeds(0, MAX_MEMBERS):
+        assert not np.allclose(state_draw, np.random.default_rng(member).random(4))
 
 
 def test_variational_refuses_a_plain_ensemble():

@@ -25,14 +25,21 @@ from ..errors import UserError
 from ..imageio_utils import folder_name
 
 
+#: The spawn key of the planner's random stream: beyond every ensemble member's.
+PLANNER_STREAM = 2**31
+
+
 def planner_rng(seed: int) -> np.random.Generator:
     """The planner's random stream of a run with this seed.
 
     ``env.reset(seed=seed)`` draws the initial views from the stream of
     ``default_rng(seed)``. The planner must not replay it: ``random`` would
     then re-pick an initial view in about half the runs, wasting a view.
+    Nor the streams of the ensemble's members (``spawn_key=(k,)``, k below
+    :data:`~mitsuba_active.field.config.MAX_MEMBERS`): a planner's draws would follow
+    a member's initial features.
     """
-    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(1,)))
+    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(PLANNER_STREAM,)))
 
 
 @dataclass

@@ -720,14 +720,14 @@ def summarize(values) -> dict:
 
 def table_views(jobs: list[Job]) -> tuple:
     """The view counts the tables report: :data:`TABLE_VIEWS` when every job
-    evaluates them, else the largest count every job evaluates and the one
+    evaluates them and none more, else the largest count every job evaluates and the one
     nearest half of it, the larger of two as near (a suite with another budget
     or other counts: of 2, 4 and 6 views, 4 and 6), but not the initial views
     (where every planner has the same views)."""
     from .run import RunConfig
 
     common = set.intersection(*[set(RunConfig(**j.config).report_counts()) for j in jobs]) if jobs else set()
-    if set(TABLE_VIEWS) <= common or not common:
+    if not common or (set(TABLE_VIEWS) <= common and max(common) == max(TABLE_VIEWS)):
         return TABLE_VIEWS
     last = max(common)
     initial = max(int(j.config.get("initial_views", 0)) for j in jobs)

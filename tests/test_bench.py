@@ -748,6 +748,9 @@ def test_tables_report_the_largest_view_count_and_the_one_nearest_half_of_it():
         return [Job("s", "even", 0, "s.xml", cfg, "o")]
 
     assert table_views(jobs(20, [5, 10, 15, 20])) == (10, 20)
+    # A suite taken on to a larger budget reports it, not 20.
+    assert table_views(jobs(40, [5, 10, 15, 20, 30, 40])) == (20, 40)
+    assert table_views(jobs(30, [5, 10, 15, 20])) == (15, 30)
     assert table_views(jobs(6, [2, 4, 6])) == (4, 6)  # 2 and 4 are as near 3: the later one says more
     assert table_views(jobs(9, [2, 3, 9])) == (3, 9)
     # The initial views (2) are the same for every planner: nothing to compare.

@@ -713,8 +713,14 @@ def metric_at(rec: dict, metric: str, views: int):
     return None
 
 
+def usable(value) -> bool:
+    """Whether a seed's value counts in a table: a finite number (a NaN PSNR, from a dataset image
+    with NaN pixels, or an infinite one, from a perfect view, counts as missing), in every cell and margin alike."""
+    return value is not None and bool(np.isfinite(value))
+
+
 def summarize(values) -> dict:
-    vals = [v for v in values if v is not None and np.isfinite(v)]
+    vals = [v for v in values if usable(v)]
     return {"iqm": iqm(vals) if vals else None, "se": standard_error(vals) if vals else None, "n": len(vals)}
 
 
@@ -911,7 +917,7 @@ def scene_means(summary: dict, scenes, planners, metric: str) -> dict:
         """(p's, b's) value on scene s over the seeds both have, or None."""
         key, cp, cb = f"{metric}@{v}", cells[(s, p)], cells[(s, b)]
         common = [k for k in cp["per_seed"] if k in cb["per_seed"]
-                  and cp["per_seed"][k].get(key) is not None and cb["per_seed"][k].get(key) is not None]
+                  and usable(cp["per_seed"][k].get(key)) and usable(cb["per_seed"][k].get(key))]
         if not common:
             return None
         return tuple(iqm([c["per_seed"][k][key] for k in common]) for c in (cp, cb))

@@ -116,7 +116,7 @@ def test_margins_pair_the_seeds_both_planners_have_and_ties_are_no_wins():
     from mitsuba_active.metrics import iqm
 
     def cell(scene, planner, per_seed):
-        st = {"iqm": iqm(list(per_seed.values()))}
+        st = {"iqm": iqm([x for x in per_seed.values() if np.isfinite(x)])}  # as summarize() counts them
         return {"scene": scene, "planner": planner, "seeds": len(per_seed), "psnr@10": st, "psnr@20": st,
                 "per_seed": {k: {"psnr@10": x, "psnr@20": x} for k, x in per_seed.items()}}
 
@@ -127,11 +127,13 @@ def test_margins_pair_the_seeds_both_planners_have_and_ties_are_no_wins():
         # The same views, scored again: a tie.
         cell("b", "even", {"0": 10.0}), cell("b", "rfe", {"0": 10.0 + 1e-9}),
         # No seed in common: not compared.
-        cell("c", "even", {"1": 5.0}), cell("c", "rfe", {"0": 6.0})]}
-    means = scene_means(summary, ["a", "b", "c"], ["even", "rfe"], "psnr")
+        cell("c", "even", {"1": 5.0}), cell("c", "rfe", {"0": 6.0}),
+        # A seed without a finite score (NaN: a dataset image's NaN pixels) counts as missing, as in the cells.
+        cell("d", "even", {"0": 8.0, "1": 9.0}), cell("d", "rfe", {"0": float("nan"), "1": 9.0})]}
+    means = scene_means(summary, ["a", "b", "c", "d"], ["even", "rfe"], "psnr")
     m = means["rfe"]
-    assert m["vs_even@10"] == pytest.approx(0.5) and m["wins_vs_even@10"] == 1 and m["compared_vs_even@10"] == 2
-    assert "+0.50 (1/2) | +0.50 (1/2) |" in _mean_table(means, ["even", "rfe"], "PSNR").split("| rfe | ")[1]
+    assert m["vs_even@10"] == pytest.approx(1 / 3) and m["wins_vs_even@10"] == 1 and m["compared_vs_even@10"] == 3
+    assert "+0.33 (1/3) | +0.33 (1/3) |" in _mean_table(means, ["even", "rfe"], "PSNR").split("| rfe | ")[1]
 
 
 #: The views of a run record made by hand (a record's parts are checked when it is read).

@@ -882,7 +882,9 @@ class Run:
         n = len(self.env.captured)
         for count in self.cfg.report_counts():
             if count <= n and count not in done:
-                metrics, preds = evaluate(self.source, self.env.views[:count], self.cfg)
+                # In candidate order: planners that captured the same views, in any order, score the same.
+                first = sorted(range(count), key=lambda i: self.env.captured[i])
+                metrics, preds = evaluate(self.source, [self.env.views[i] for i in first], self.cfg)
                 self.record["metrics"].append(metrics)
                 self.record["metrics"].sort(key=lambda m: m["views"])
                 self._last_preds = preds

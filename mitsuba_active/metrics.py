@@ -60,8 +60,11 @@ def iqm(values) -> float:
     """Interquartile mean: the mean of the middle 50% of the sorted values.
 
     With n values, a quarter (n/4, fractional at the edges) is cut at each
-    end and the remaining weight averaged, as in Agarwal et al. (2021). Two
-    values give their mean; three weigh the middle one 4 times the others.
+    end and the remaining weight averaged: Agarwal et al.'s (2021) statistic,
+    with fractional weights where n is not a multiple of 4 (their rliable
+    library cuts whole values, ``scipy.stats.trim_mean(x, 0.25)``: for 5
+    seeds it averages the middle 3 equally, where this weighs them 3/4, 1, 3/4).
+    Two values give their mean; three weigh the middle one 4 times the others.
     """
     x = np.sort(np.asarray(values, dtype=np.float64).ravel())
     n = len(x)

@@ -224,23 +224,40 @@ def fibonacci_directions(n: int, offset: float = 0.0, y_min: float = -1.0, y_max
     return np.stack([r * np.cos(phi), y, r * np.sin(phi)], axis=1)
 
 
-def farthest_points(candidates: np.ndarray, pool: np.ndarray, n: int) -> list[int]:
-    """Indices of at most ``n`` of the (P, 3) unit vectors ``pool`` that keep away from the (C, 3)
-    unit vectors ``candidates``: each in turn the one farthest from the candidates and from the
-    ones chosen before it (farthest-point sampling), so held-out views lie in the gaps between
-    candidate views, never next to one, and spread out. Fewer than ``n`` only when the pool runs out."""
+def places_apart(taken: np.ndarray, pool: np.ndarray, targets: np.ndarray, radius: float) -> list[int]:
+    """For each of the (T, 3) unit vectors ``targets``, the index of the point of the (P, 3) unit
+    vectors ``pool`` within chord ``radius`` of it (the nearest point, where none is) that lies
+    farthest from the (C, 3) unit vectors ``taken`` and from the points chosen for earlier targets.
+
+    Held-out views then keep the targets' even spread (the held-out spiral), each moved into the
+    largest gap between candidate views near it, never next to a candidate."""
     from scipy.spatial import cKDTree
 
     pool = np.asarray(pool, dtype=np.float64)
-    gap = cKDTree(candidates).query(pool)[0] if len(candidates) else np.full(len(pool), np.inf)
+    gap = cKDTree(taken).query(pool)[0] if len(taken) else np.full(len(pool), 2.0)
     tree, chosen = cKDTree(pool), []
-    while len(chosen) < n and len(pool) and gap.max() > 0:
-        i = int(np.argmax(gap))  # chord lengths, in the order of angles
+    for target in targets:
+        near = np.asarray(tree.query_ball_point(target, radius), dtype=np.int64)
+        if len(near) == 0:
+            near = np.array([tree.query(target)[1]])
+        i = int(near[np.argmax(gap[near])])
         chosen.append(i)
-        near = np.asarray(tree.query_ball_point(pool[i], min(gap[i], 2.0)), dtype=np.int64)
-        gap[near] = np.minimum(gap[near], np.linalg.norm(pool[near] - pool[i], axis=1))
-        gap[i] = 0.0
+        # Later targets keep away from this one too.
+        around = np.asarray(tree.query_ball_point(pool[i], float(gap.max())), dtype=np.int64)
+        gap[around] = np.minimum(gap[around], np.linalg.norm(pool[around] - pool[i], axis=1))
     return chosen
+
+
+def _mirrored_below(dirs: np.ndarray, y_min: float) -> np.ndarray:
+    """(N, 3) unit vectors ``dirs`` mirrored in elevation across the circle ``y = y_min``
+    (the same azimuth, as far below it as they are above)."""
+    elevation = np.arcsin(np.clip(dirs[:, 1], -1.0, 1.0))
+    mirrored = 2.0 * math.asin(y_min) - elevation
+    horizontal = np.hypot(dirs[:, 0], dirs[:, 2])
+    scale = np.cos(mirrored) / np.maximum(horizontal, 1e-12)
+    out = np.stack([dirs[:, 0] * scale, np.sin(mirrored), dirs[:, 2] * scale], axis=1)
+    out[horizontal < 1e-12, 0] = np.cos(mirrored[horizontal < 1e-12])  # a pole: any azimuth
+    return out
 
 
 def _pool_size(n_candidates: int, n_heldout: int) -> int:
@@ -365,7 +382,7 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     floor (a shape with the id ``floor``), else ``sphere``. Held-out views
     are of the same kind as the candidates (under ``xml``: of the rig ``auto``
     would pick) and lie in the gaps between the candidates' places on the rig
-    (:func:`farthest_points`), except under ``rings``, whose held-out rings
+    (:func:`places_apart`), except under ``rings``, whose held-out rings
     are shifted in elevation and azimuth. None coincides with a candidate.
 
     Images are ``width`` pixels wide and ``height`` high; ``height`` defaults
@@ -406,12 +423,12 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
             return UserError(f"the interior rig found room for {found} of the {n} {what} cameras inside "
                              f"{scene.path}, the rest being inside solid objects; {hint}")
 
-        def make(n, off):  # over-generated, then thinned out evenly
+        def make(n, off):  # over-generated, then thinned out evenly over the whole spiral
             dirs = fibonacci_directions(4 * n, off)
             dirs = dirs[free(dirs)]
             if len(dirs) < n:
                 raise short(len(dirs), n, "candidate" if off == 0.0 else "held-out")
-            return at(dirs[:: max(1, len(dirs) // n)][:n])
+            return at(dirs[np.linspace(0, len(dirs) - 1, n).round().astype(np.int64)])
     else:
         fov = 40.0 if fov is None else fov
         if not 0.0 < fov < 180.0:
@@ -424,7 +441,10 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
         centre, axes, frame = scene.center, radius, up_frame(scene.up)
         band = (math.sin(math.radians(HEMISPHERE_MIN_ELEVATION)) if generated == "hemisphere" else -1.0, 1.0)
         at = lambda dirs: _cameras_around(centre, radius, dirs, scene.up, fov, width, height, near, far)  # noqa: E731
-        free = short = None
+        free = None
+
+        def short(found, n, what):  # not met: the spiral holds 8 points for each camera
+            return UserError(f"the {generated} rig found places for {found} of the {n} {what} cameras")
         fn = {"sphere": fibonacci_sphere, "hemisphere": hemisphere, "rings": rings}[generated]
         make = lambda n, off: fn(n, scene.center, radius, fov, width, height, off, up=scene.up,  # noqa: E731
                                  near=near, far=far)
@@ -450,12 +470,19 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
         length = np.linalg.norm(places, axis=1, keepdims=True)
         places = places[length[:, 0] > 0] / length[length[:, 0] > 0]
         spiral = fibonacci_directions(_pool_size(len(candidates), n_heldout), 0.5, *band)
-        if free is not None:
-            spiral = spiral[free(spiral)]
-        chosen = spiral[farthest_points(places, spiral, n_heldout)]
-        if len(chosen) < n_heldout:
-            raise short(len(chosen), n_heldout, "held-out")
-        heldout = at(chosen)
+        taken = [places]  # what held-out views keep away from
+        if band[0] > -1.0:  # a hemisphere's rim: as if candidates went on below it, or held-out views crowd along it
+            taken.append(_mirrored_below(places, band[0]))
+        if free is not None:  # and from furniture, as from candidates, or they crowd against it
+            inside = ~free(spiral)
+            taken.append(spiral[inside])
+            spiral = spiral[~inside]
+        if len(spiral) < n_heldout:
+            raise short(len(spiral), n_heldout, "held-out")
+        # Each a held-out spiral's point, moved within half its spacing into the largest gap.
+        spacing = math.sqrt(2.0 * math.pi * (band[1] - band[0]) / n_heldout)  # radians, on the unit sphere
+        targets = fibonacci_directions(n_heldout, 0.5, *band)
+        heldout = at(spiral[places_apart(np.concatenate(taken), spiral, targets, spacing / 2)])
     check_disjoint(candidates, heldout)
     return candidates, heldout
 

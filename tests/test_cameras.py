@@ -60,8 +60,14 @@ def test_heldout_views_lie_between_candidates(spot_xml, shared_data, rig):
     spacing = np.median(np.sort(angle(c, c), axis=1)[:, 1])  # a candidate's nearest neighbour
     assert angle(h, c).min() > 0.45 * spacing
     assert np.sort(angle(h, h), axis=1)[:, 1].min() > 0.45 * spacing
-    if rig == "hemisphere":  # above the floor, as the candidates are
-        assert (np.degrees(np.arcsin(np.clip(h @ scene.up, -1, 1))) > 4.9).all()
+    # Spread as the candidates are: not crowded into one part of the rig, such as a hemisphere's rim.
+    up = scene.up if rig != "interior" else np.array([0.0, 1.0, 0.0])
+    height = [np.degrees(np.arcsin(np.clip(v @ up, -1, 1))) for v in (c, h)]
+    assert abs(np.median(height[1]) - np.median(height[0])) < 12
+    if rig == "hemisphere":  # above the floor, as the candidates are, and not along its rim
+        assert (height[1] > 4.9).all() and (height[1] < 8).sum() <= 4
+    if rig == "interior":  # the candidates cover the whole ellipsoid, its bottom too
+        assert height[0].min() < -60 and height[0].max() > 60
 
 
 def test_xml_rig_uses_the_scenes_own_sensor(shared_data):

@@ -1,8 +1,8 @@
 """Held-out fit quality of the radiance field against training wall time.
 
 Scene: ``spot.obj`` (64x64 views): 50 training views and 20 held-out views
-from the sphere rig of :func:`mitsuba_active.cameras.scene_rigs` (disjoint
-spirals), ground truth from :class:`mitsuba_active.groundtruth.GroundTruth`.
+from the sphere rig of :func:`mitsuba_active.cameras.scene_rigs` (held-out
+views in the candidates' gaps), ground truth from :class:`mitsuba_active.groundtruth.GroundTruth`.
 Trains one ensemble (``--members``, default 1) and evaluates every
 ``--eval-every`` seconds of *training* time (evaluation time is excluded):
 

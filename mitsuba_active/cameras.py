@@ -224,27 +224,38 @@ def fibonacci_directions(n: int, offset: float = 0.0, y_min: float = -1.0, y_max
     return np.stack([r * np.cos(phi), y, r * np.sin(phi)], axis=1)
 
 
-def places_apart(taken: np.ndarray, pool: np.ndarray, targets: np.ndarray, radius: float) -> list[int]:
-    """For each of the (T, 3) unit vectors ``targets``, the index of the point of the (P, 3) unit
-    vectors ``pool`` within chord ``radius`` of it (the nearest point, where none is) that lies
-    farthest from the (C, 3) unit vectors ``taken`` and from the points chosen for earlier targets.
+def places_apart(taken: np.ndarray, pool: np.ndarray, targets: np.ndarray, radius: float,
+                 mirror=None) -> list[int]:
+    """For each of the (T, 3) unit vectors ``targets``, the index of a point of the (P, 3) unit
+    vectors ``pool`` within chord ``radius`` of it that lies farthest from the (C, 3) unit vectors
+    ``taken`` and from the points chosen for earlier targets (gaps count up to ``2 * radius``;
+    the nearer of points as far from them). Where none is within ``radius``, or all there are
+    taken, the nearest such points are searched. Distinct points while the pool lasts.
+    ``mirror``: maps chosen points to (1, 3) points that later ones keep away from too (a
+    hemisphere's rim, below which the rig goes on as if reflected).
 
     Held-out views then keep the targets' even spread (the held-out spiral), each moved into the
     largest gap between candidate views near it, never next to a candidate."""
     from scipy.spatial import cKDTree
 
     pool = np.asarray(pool, dtype=np.float64)
-    gap = cKDTree(taken).query(pool)[0] if len(taken) else np.full(len(pool), 2.0)
+    cap = 2.0 * radius  # farther gaps choose nothing within reach, and bound each update
+    gap = np.minimum(cKDTree(taken).query(pool)[0], cap) if len(taken) else np.full(len(pool), cap)
     tree, chosen = cKDTree(pool), []
     for target in targets:
         near = np.asarray(tree.query_ball_point(target, radius), dtype=np.int64)
-        if len(near) == 0:
-            near = np.array([tree.query(target)[1]])
-        i = int(near[np.argmax(gap[near])])
+        k = 64
+        while (len(near) == 0 or gap[near].max() == 0) and len(near) < len(pool):
+            near = np.atleast_1d(tree.query(target, k=min(k, len(pool)))[1])
+            k *= 4
+        score = gap[near] - 1e-9 * np.linalg.norm(pool[near] - target, axis=1)
+        i = int(near[np.argmax(score)])
         chosen.append(i)
-        # Later targets keep away from this one too.
-        around = np.asarray(tree.query_ball_point(pool[i], float(gap.max())), dtype=np.int64)
-        gap[around] = np.minimum(gap[around], np.linalg.norm(pool[around] - pool[i], axis=1))
+        # Later targets keep away from this one too (and from its mirror image).
+        for point in [pool[i]] + ([] if mirror is None else list(mirror(pool[[i]]))):
+            around = np.asarray(tree.query_ball_point(point, cap), dtype=np.int64)
+            gap[around] = np.minimum(gap[around], np.linalg.norm(pool[around] - point, axis=1))
+        gap[i] = 0.0
     return chosen
 
 
@@ -482,7 +493,8 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
         # Each a held-out spiral's point, moved within half its spacing into the largest gap.
         spacing = math.sqrt(2.0 * math.pi * (band[1] - band[0]) / n_heldout)  # radians, on the unit sphere
         targets = fibonacci_directions(n_heldout, 0.5, *band)
-        heldout = at(spiral[places_apart(np.concatenate(taken), spiral, targets, spacing / 2)])
+        mirror = (lambda points: _mirrored_below(points, band[0])) if band[0] > -1.0 else None
+        heldout = at(spiral[places_apart(np.concatenate(taken), spiral, targets, spacing / 2, mirror)])
     check_disjoint(candidates, heldout)
     return candidates, heldout
 
@@ -507,8 +519,10 @@ def check_disjoint(candidates, heldout, tol=1e-6):
     """Raise if a held-out camera coincides with a candidate camera."""
     if not candidates or not heldout:
         return
+    from scipy.spatial import cKDTree
+
     a = np.stack([c.to_world.ravel() for c in candidates])
     b = np.stack([c.to_world.ravel() for c in heldout])
-    d = np.abs(a[:, None, :] - b[None, :, :]).max(axis=2)
-    if (d < tol).any():
+    # The largest entry difference of any pair below tol, without a C x H x 16 array.
+    if np.isfinite(cKDTree(a).query(b, p=np.inf, distance_upper_bound=tol)[0]).any():
         raise UserError("held-out cameras coincide with candidate cameras; use another rig offset")

@@ -70,6 +70,18 @@ def test_heldout_views_lie_between_candidates(spot_xml, shared_data, rig):
         assert height[0].min() < -60 and height[0].max() > 60
 
 
+def test_heldout_views_stay_distinct_and_off_the_rim_with_few_candidates(spot_xml, shared_data):
+    """Many held-out views in a furnished room are all distinct; with few candidates, a hemisphere's
+    held-out views do not crowd along its rim (below 8 degrees: 6 % of its area)."""
+    room = load_scene(shared_data / "mitsuba/cbox/cbox.xml")
+    _, held = scene_rigs(room, "interior", 100, 100, 8)
+    assert len({cam.to_world.tobytes() for cam in held}) == 100
+    scene = load_scene(spot_xml)
+    _, held = scene_rigs(scene, "hemisphere", 1, 20, 8)
+    height = np.degrees(np.arcsin(np.clip(-np.stack([cam.forward for cam in held]) @ scene.up, -1, 1)))
+    assert (height < 8).sum() <= 3
+
+
 def test_xml_rig_uses_the_scenes_own_sensor(shared_data):
     scene = load_scene(shared_data / "mitsuba/simple/scene.xml")
     cands, held = scene_rigs(scene, "xml", n_heldout=5, width=8)

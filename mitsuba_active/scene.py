@@ -844,11 +844,11 @@ def _describe(mi_scene, xml_path: Path, digest: str | None) -> Scene:
         film = s.film()
         full, size, offset = (np.array(v, dtype=np.float64) for v in (film.size(), film.crop_size(),
                                                                       film.crop_offset()))
-        # A crop window sees part of the film's field of view; off the film's centre it is
-        # a principal point offset too.
+        # A crop window sees part of the film's field of view; off the film's centre (by more
+        # than the half pixel an odd difference in size leaves) it is a principal point offset too.
         off_centre += any(float(sensor_params[key][0]) != 0 for key in ("principal_point_offset_x",
                                                                          "principal_point_offset_y")
-                          if key in sensor_params.keys()) or bool(np.any(offset + size / 2 != full / 2))
+                          if key in sensor_params.keys()) or bool(np.any(np.abs(offset + size / 2 - full / 2) > 0.5))
         thin_lens += "aperture_radius" in sensor_params.keys() and float(sensor_params["aperture_radius"][0]) > 0
         fov = math.degrees(2 * math.atan(math.tan(math.radians(float(sensor_params["x_fov"][0])) / 2)
                                          * size[0] / full[0]))

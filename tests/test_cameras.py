@@ -130,6 +130,8 @@ def test_xml_rig_keeps_a_crop_windows_view_and_names_what_it_does_not_keep(tmp_p
     (cam,) = centred.sensors
     assert (cam.width, cam.height, centred.sensors_off_centre) == (16, 16, 0)
     assert math.isclose(math.tan(math.radians(cam.fov) / 2), math.tan(math.radians(20)) / 2, rel_tol=1e-6)
+    # Centred but for the half pixel of an odd difference in size: centred.
+    assert scene(film=crop(8, 8).replace('"crop_width" value="16"', '"crop_width" value="15"')).sensors_off_centre == 0
     # Off the film's centre, it looks off-axis: centred, as a principal point offset is, with a warning.
     corner = scene(film=crop(16, 0))
     assert corner.sensors_off_centre == 1

@@ -359,9 +359,14 @@ def interior(n, bbox_min, bbox_max, fov=70.0, width=64, height=64, offset=0.0, s
     sees the far walls.
     """
     _check_count(n)
+    center, axes = _room_ellipsoid(bbox_min, bbox_max, spread)
+    return _cameras_inside(center, axes, fibonacci_directions(n, offset), up, fov, width, height, near, far)
+
+
+def _room_ellipsoid(bbox_min, bbox_max, spread=INTERIOR_SPREAD):
+    """Centre (3,) and semi-axes (3,) of the ellipsoid :func:`interior` cameras lie on."""
     lo, hi = np.asarray(bbox_min, dtype=np.float64), np.asarray(bbox_max, dtype=np.float64)
-    center, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-    return _cameras_inside(center, spread * half, fibonacci_directions(n, offset), up, fov, width, height, near, far)
+    return 0.5 * (lo + hi), spread * 0.5 * (hi - lo)
 
 
 def _cameras_inside(center, axes, dirs, up, fov, width, height, near, far):
@@ -422,8 +427,7 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     if generated == "interior":
         fov = 70.0 if fov is None else fov
         near, far = clip_range(scene.radius, 2.0 * scene.radius)
-        lo, hi = np.asarray(scene.bbox_min, dtype=np.float64), np.asarray(scene.bbox_max, dtype=np.float64)
-        centre, axes, frame, band = 0.5 * (lo + hi), INTERIOR_SPREAD * 0.5 * (hi - lo), np.eye(3), (-1.0, 1.0)
+        (centre, axes), frame, band = _room_ellipsoid(scene.bbox_min, scene.bbox_max), np.eye(3), (-1.0, 1.0)
         at = lambda dirs: _cameras_inside(centre, axes, dirs, scene.up, fov, width, height, near, far)  # noqa: E731
         # Cameras inside furniture would see nothing else.
         free = lambda dirs: scene.free_space(centre + axes * dirs)  # noqa: E731
@@ -453,9 +457,6 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
         band = (math.sin(math.radians(HEMISPHERE_MIN_ELEVATION)) if generated == "hemisphere" else -1.0, 1.0)
         at = lambda dirs: _cameras_around(centre, radius, dirs, scene.up, fov, width, height, near, far)  # noqa: E731
         free = None
-
-        def short(found, n, what):  # not met: the spiral holds 8 points for each camera
-            return UserError(f"the {generated} rig found places for {found} of the {n} {what} cameras")
         fn = {"sphere": fibonacci_sphere, "hemisphere": hemisphere, "rings": rings}[generated]
         make = lambda n, off: fn(n, scene.center, radius, fov, width, height, off, up=scene.up,  # noqa: E731
                                  near=near, far=far)
@@ -481,19 +482,18 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
         length = np.linalg.norm(places, axis=1, keepdims=True)
         places = places[length[:, 0] > 0] / length[length[:, 0] > 0]
         spiral = fibonacci_directions(_pool_size(len(candidates), n_heldout), 0.5, *band)
-        taken = [places]  # what held-out views keep away from
-        if band[0] > -1.0:  # a hemisphere's rim: as if candidates went on below it, or held-out views crowd along it
-            taken.append(_mirrored_below(places, band[0]))
+        # A hemisphere's rim: as if the rig went on below it, or held-out views crowd along it.
+        mirror = (lambda points: _mirrored_below(points, band[0])) if band[0] > -1.0 else None
+        taken = [places] + ([mirror(places)] if mirror else [])  # what held-out views keep away from
         if free is not None:  # and from furniture, as from candidates, or they crowd against it
             inside = ~free(spiral)
             taken.append(spiral[inside])
             spiral = spiral[~inside]
-        if len(spiral) < n_heldout:
-            raise short(len(spiral), n_heldout, "held-out")
+            if len(spiral) < n_heldout:
+                raise short(len(spiral), n_heldout, "held-out")
         # Each a held-out spiral's point, moved within half its spacing into the largest gap.
         spacing = math.sqrt(2.0 * math.pi * (band[1] - band[0]) / n_heldout)  # radians, on the unit sphere
         targets = fibonacci_directions(n_heldout, 0.5, *band)
-        mirror = (lambda points: _mirrored_below(points, band[0])) if band[0] > -1.0 else None
         heldout = at(spiral[places_apart(np.concatenate(taken), spiral, targets, spacing / 2, mirror)])
     check_disjoint(candidates, heldout)
     return candidates, heldout

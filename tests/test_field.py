@@ -182,6 +182,18 @@ def test_members_marched_together_match_one_by_one():
     assert not np.allclose(together[6], together[7])  # the two members' gradients differ
 
 
+def test_marching_reads_features_a_scatter_has_yet_to_write():
+    """Features that are still the pending target of a scatter (as the lookups
+    of empty-space skipping are) composite as their evaluated values do."""
+    raw_np, t_np, delta_np, valid_np, _ = _composite_inputs()
+    args = (mi.Float(t_np), mi.Float(delta_np), mi.Bool(valid_np), 16, -1.0, 1 / 1.5)
+    pending = dr.zeros(mi.Vector4f, raw_np.shape[1])
+    dr.scatter(pending, mi.Vector4f(raw_np), dr.arange(mi.UInt32, raw_np.shape[1]))
+    assert pending[0].state == dr.VarState.Dirty
+    for a, b in zip(composite_marched(pending, *args), composite_marched(mi.Vector4f(raw_np), *args)):
+        np.testing.assert_allclose(np.array(a), np.array(b), rtol=1e-6)
+
+
 def test_render_with_weights_matches_marched_render():
     """Asking for the weights takes the blocked reductions; the colours,
     distances and opacities are the marched render's, and the weights sum to

@@ -190,9 +190,21 @@ class _MarchedComposite(dr.CustomOp):
     tuple of members' raw features marched side by side."""
 
     def eval(self, raws, t, delta, valid, S, density_bias, inv_diag):
-        self.raws, self.t, self.valid, self.S = raws, t, valid, S
+        self.t, self.valid, self.S, self.K = t, valid, S, len(raws)
         self.density_bias, self.inv_diag = density_bias, inv_diag
-        self.first = dr.arange(mi.UInt32, dr.width(t) // S) * S  # each ray's first sample
+        # All members' features of a sample side by side (K*4 floats): the
+        # loop reads them with one packet load per ray instead of K*4
+        # strided gathers. Where the lookups are not yet evaluated, one
+        # kernel traces them, writes them packed and writes t and delta.
+        n = dr.width(t)
+        self.XF = type(mi.ArrayXf())  # for the packet gathers and scatters
+        self.raws = dr.empty(mi.Float, 4 * self.K * n)
+        # Dr.Jit's packet scatter cannot read arrays that a scatter has yet to
+        # write (empty-space skipping's lookups are such): those go first.
+        dr.eval([c for r in raws for c in r if c.state == dr.VarState.Dirty])
+        dr.scatter(self.raws, self.XF(*[r[ch] for r in raws for ch in range(4)]), dr.arange(mi.UInt32, n))
+        dr.eval(self.raws, t, delta)
+        self.first = dr.arange(mi.UInt32, n // S) * S  # each ray's first sample
         self.delta = dr.gather(mi.Float, delta, self.first)
         self.per_ray = dr.width(valid) == dr.width(self.first)
         out, _ = self._march()
@@ -216,9 +228,10 @@ class _MarchedComposite(dr.CustomOp):
             j = self.first + i
             valid = self.valid if self.per_ray else dr.gather(mi.Bool, self.valid, j)
             t_i = dr.gather(mi.Float, self.t, j)  # read once for all members
+            raws = dr.gather(self.XF, self.raws, j, shape=(4 * self.K, dr.width(j)))
             marched = []
             for k, (trans, p_rgb, p_dsum, p_opac) in enumerate(sums):
-                raw = dr.gather(mi.Vector4f, self.raws[k], j)
+                raw = mi.Vector4f(*[raws[4 * k + ch] for ch in range(4)])
                 sigma, c, live = _raw_to_field(raw, valid, self.density_bias, self.inv_diag)
                 alpha_c = dr.exp(-sigma * self.delta)  # 1 - alpha
                 w = trans * (1.0 - alpha_c)
@@ -231,18 +244,18 @@ class _MarchedComposite(dr.CustomOp):
                 marched.append((trans_after, p_rgb, p_dsum, p_opac))
             return i + 1, tuple(marched), acc
 
-        start = tuple((z + 1.0, mi.Color3f(z), mi.Float(z), mi.Float(z)) for _ in self.raws)
+        start = tuple((z + 1.0, mi.Color3f(z), mi.Float(z), mi.Float(z)) for _ in range(self.K))
         _, sums, acc = dr.while_loop((mi.UInt32(0), start, acc), lambda i, *_: i < self.S, step)
         return tuple(member[1:] for member in sums), acc
 
     def backward(self):
         g_out = self.grad_out()
         n = dr.width(self.t)
-        # The 4 gradients of a sample side by side: one packet store per lane
-        # in the loop instead of 4 scattered ones. The loop writes every
-        # sample, so the arrays need no zeroing first.
-        packed = [dr.empty(mi.Float, 4 * n) for _ in self.raws]
-        XF = type(mi.ArrayXf())
+        # The 4 gradients of a sample and member side by side, laid out as
+        # the features: one packet store per lane and member in the loop
+        # instead of 4 scattered ones. The loop writes every sample, so the
+        # array needs no zeroing first.
+        packed = dr.empty(mi.Float, 4 * self.K * n)
 
         def visit(k, j, sigma, c, t_i, live, w, trans_after, rest, acc):
             # d(output)/d(tau_i) = T_{i+1} v_i - (what the samples behind i contribute),
@@ -251,13 +264,12 @@ class _MarchedComposite(dr.CustomOp):
             g_tau = (dr.dot(g_rgb, dr.fma(c, trans_after, -rest[0])) + g_dsum * dr.fma(t_i, trans_after, -rest[1])
                      + g_opac * (trans_after - rest[2]))
             g_c = [g_rgb[ch] * w * c[ch] * (1.0 - c[ch]) for ch in range(3)]
-            dr.scatter(packed[k], XF(dr.select(live, g_tau * self.delta * sigma, 0.0), *g_c), j)
+            dr.scatter(packed, self.XF(dr.select(live, g_tau * self.delta * sigma, 0.0), *g_c), j * self.K + k)
             return acc
 
         self._march(visit)
-        ids = dr.arange(mi.UInt32, n)
-        grads = [dr.gather(XF, member, ids, shape=(4, n)) for member in packed]
-        self.set_grad_in("raws", tuple(mi.Vector4f(g[0], g[1], g[2], g[3]) for g in grads))
+        g = dr.gather(self.XF, packed, dr.arange(mi.UInt32, n), shape=(4 * self.K, n))
+        self.set_grad_in("raws", tuple(mi.Vector4f(*[g[4 * k + ch] for ch in range(4)]) for k in range(self.K)))
 
     def forward(self):
         d_raws = self.grad_in("raws")
@@ -273,7 +285,7 @@ class _MarchedComposite(dr.CustomOp):
             return acc[:k] + (member,) + acc[k + 1:]
 
         z = dr.zeros(mi.Float, dr.width(self.delta))
-        start = tuple((mi.Color3f(z), mi.Float(z), mi.Float(z)) for _ in self.raws)
+        start = tuple((mi.Color3f(z), mi.Float(z), mi.Float(z)) for _ in range(self.K))
         self.set_grad_out(self._march(visit, start)[1])
 
     def name(self):
@@ -359,6 +371,15 @@ def _marching(s: dict, return_weights: bool) -> bool:
             and not dr.grad_enabled(s["t"], s["delta"]))
 
 
+def _evaluate_lookups(s: dict, raws: list, return_weights: bool):
+    """Evaluate the grid lookups (and the sample distances) once, in one
+    kernel: otherwise every blocked reduction and every backward kernel would
+    re-trace and re-run the 8 * n_levels gathers. When marching, the lookups
+    are left to :func:`composite_marched`, whose kernel writes them packed."""
+    if not _marching(s, return_weights):
+        dr.eval(raws, s["t"], s["delta"])
+
+
 def _composited(params: FieldParams, s: dict, raws: list, members: list, return_weights=False) -> list:
     """Composite the evaluated raw features of the members ``members`` (one
     ``raws`` each; see render_flat): marched together, or one by one with
@@ -377,7 +398,9 @@ def _composited(params: FieldParams, s: dict, raws: list, members: list, return_
             sums.append((rgb, dsum, opac, w))
     outs = []
     for member, (rgb, dsum, opac, w) in zip(members, sums):
-        bg = dr.gather(mi.Vector3f, params.background, mi.UInt32(member))
+        # One background index per ray: the gradient of a background read once and
+        # broadcast to every ray would take a reduction kernel per channel and member.
+        bg = dr.gather(mi.Vector3f, params.background, dr.zeros(mi.UInt32, dr.width(opac)) + mi.UInt32(member))
         bg = mi.Color3f(*[dr.rcp(1.0 + dr.exp(-bg[c])) for c in range(3)])
         out = dict(rgb=rgb + (1.0 - opac) * bg, distance=dsum / dr.maximum(opac, 1e-6), opacity=opac)
         if return_weights:
@@ -404,10 +427,7 @@ def render_flat(params: FieldParams, o, d, member, jitter=None, return_weights=F
     mem = mi.UInt32(member)
     m = dr.gather(mi.UInt32, mem, s["ray"]) if dr.width(mem) > 1 else mem
     raw = lookup_samples(params, s, m)
-    # Evaluate the grid lookups (and the sample distances) once, in one
-    # kernel: otherwise every blocked reduction below and every backward
-    # kernel would re-trace and re-run the 8 * n_levels gathers.
-    dr.eval(raw, s["t"], s["delta"])
+    _evaluate_lookups(s, [raw], return_weights)
     return _composited(params, s, [raw], [mem], return_weights)[0]
 
 
@@ -423,7 +443,7 @@ def render_members(params: FieldParams, o, d, jitter=None, return_weights=False)
     """
     s = sample_along_rays(o, d, params, jitter)
     raws = lookup_samples(params, s)
-    dr.eval(raws, s["t"], s["delta"])  # one gather kernel for all members
+    _evaluate_lookups(s, raws, return_weights)  # one gather kernel for all members
     return _composited(params, s, raws, list(range(len(raws))), return_weights)
 
 

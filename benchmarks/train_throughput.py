@@ -231,7 +231,7 @@ def main(argv=None):
     ap.add_argument("--memory-steps", type=int, default=0,
                     help="also track RSS over this many K=1 steps (e.g. 2000)")
     ap.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
-                    help="a FieldConfig option, e.g. --set n_levels=2 (repeatable)")
+                    help="a FieldConfig option, e.g. --set n_levels=4 (repeatable)")
     ap.add_argument("--out", default="benchmarks/results/train_throughput.json")
     args = ap.parse_args(argv)
 

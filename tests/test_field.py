@@ -148,12 +148,14 @@ def test_marched_composite_matches_blocked_reductions():
     assert grad[0, 5] == 0 and grad[0, 16 + 3] == 0  # past the overflow guard; a skipped sample
 
 
-def test_members_marched_together_match_one_by_one():
-    """Several members' features marched in one loop give each member's
-    outputs, gradient and forward derivative as marching it alone does."""
+@pytest.mark.parametrize("n_members", [2, 3])
+def test_members_marched_together_match_one_by_one(n_members):
+    """Several members' features marched in one loop (packed side by side: 8
+    or 12 floats a sample) give each member's outputs, gradient and forward
+    derivative as marching it alone does."""
     raw_np, t_np, delta_np, valid_np, G = _composite_inputs()
-    raws_np = [raw_np, np.roll(raw_np, 7, axis=1) - 0.5]
-    tangents = [np.random.default_rng(k).normal(size=raw_np.shape).astype(np.float32) for k in (2, 3)]
+    raws_np = [np.roll(raw_np, 7 * k, axis=1) - 0.5 * k for k in range(n_members)]
+    tangents = [np.random.default_rng(k).normal(size=raw_np.shape).astype(np.float32) for k in range(2, 2 + n_members)]
     args = (mi.Float(t_np), mi.Float(delta_np), mi.Bool(valid_np), 16, -1.0, 1 / 1.5)
 
     def derivatives(together: bool):
@@ -161,7 +163,7 @@ def test_members_marched_together_match_one_by_one():
             sums = composite_marched(raws, *args) if together else [composite_marched(r, *args) for r in raws]
             ys = [dr.dot(rgb, mi.Color3f(G[:3])) + (k + 1) * (dsum * mi.Float(G[3]) + opac * mi.Float(G[4]))
                   for k, (rgb, dsum, opac) in enumerate(sums)]
-            return ys[0] + ys[1], [np.array(dr.detach(v)) for member in sums for v in member]
+            return sum(ys), [np.array(dr.detach(v)) for member in sums for v in member]
 
         raws = [mi.Vector4f(r) for r in raws_np]
         dr.enable_grad(raws)
@@ -176,21 +178,27 @@ def test_members_marched_together_match_one_by_one():
         return outputs + grads + [np.array(dr.forward_to(y))]
 
     together, alone = derivatives(True), derivatives(False)
-    assert len(together) == 9
+    assert len(together) == 4 * n_members + 1
     for a, b in zip(together, alone):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
-    assert not np.allclose(together[6], together[7])  # the two members' gradients differ
+    grads = together[3 * n_members:4 * n_members]
+    assert not np.allclose(grads[0], grads[-1])  # the members' gradients differ
 
 
 def test_marching_reads_features_a_scatter_has_yet_to_write():
     """Features that are still the pending target of a scatter (as the lookups
-    of empty-space skipping are) composite as their evaluated values do."""
+    of empty-space skipping are), beside evaluated ones, composite as their
+    evaluated values do."""
     raw_np, t_np, delta_np, valid_np, _ = _composite_inputs()
     args = (mi.Float(t_np), mi.Float(delta_np), mi.Bool(valid_np), 16, -1.0, 1 / 1.5)
     pending = dr.zeros(mi.Vector4f, raw_np.shape[1])
     dr.scatter(pending, mi.Vector4f(raw_np), dr.arange(mi.UInt32, raw_np.shape[1]))
     assert pending[0].state == dr.VarState.Dirty
-    for a, b in zip(composite_marched(pending, *args), composite_marched(mi.Vector4f(raw_np), *args)):
+    other = mi.Vector4f(raw_np[::-1].copy())
+    dr.eval(other)
+    got = composite_marched([other, pending], *args)
+    want = composite_marched([other, mi.Vector4f(raw_np)], *args)
+    for a, b in zip([v for member in got for v in member], [v for member in want for v in member]):
         np.testing.assert_allclose(np.array(a), np.array(b), rtol=1e-6)
 
 
@@ -209,6 +217,68 @@ def test_render_with_weights_matches_marched_render():
     w = np.array(weighted["weights"]).reshape(len(o), -1)
     np.testing.assert_allclose(w.sum(1), np.array(weighted["opacity"]), rtol=1e-5, atol=1e-6)
     assert np.array(plain["opacity"]).max() > 0.1
+
+
+@pytest.mark.parametrize("skipping", [False, True])
+@pytest.mark.parametrize("members", ["per ray", "all"])
+def test_marched_renders_and_gradients_match_the_blocked_ones(monkeypatch, members, skipping):
+    """Whole renders of three members, per-ray members or all of them, with
+    and without empty-space skipping: the marched path gives the blocked
+    path's outputs and gradients of the grid and of each member's background."""
+    from mitsuba_active.field import render
+
+    K, S, G = 3, 8, 4
+    ens = Ensemble(*BOX, n_members=K, config=tiny_config(n_samples=S, n_levels=3), seed=3)
+    o, d = camera_rays([0.3, 0.4, 2.5], width=5, height=5)
+    rng = np.random.default_rng(1)
+    occupied, member = rng.uniform(size=G ** 3) > 0.4, rng.integers(0, K, len(o)).astype(np.uint32)
+    jitter = rng.uniform(size=len(o) * S).astype(np.float32)
+    grid, background = np.array(ens.params().grid), np.array(ens.params().background) + 0.1 * np.arange(3 * K)
+
+    def rendered(marching: bool):
+        if not marching:
+            monkeypatch.setattr(render, "_marching", lambda s, return_weights: False)
+        params = ens.params()
+        params.grid, params.background = mi.Float(grid), mi.Float(background)
+        if skipping:
+            params.occupancy, params.occupancy_resolution = mi.Bool(occupied), G
+        dr.enable_grad(params.grid, params.background)
+        args = (params, mi.Point3f(o.T), mi.Vector3f(d.T))
+        outs = ([render.render_flat(*args, mi.UInt32(member), jitter=mi.Float(jitter))] if members == "per ray"
+                else render.render_members(*args, jitter=mi.Float(jitter)))
+        loss = 0.0
+        for k, out in enumerate(outs):
+            loss = loss + (k + 1) * (dr.sum(dr.sum(out["rgb"])) + 0.3 * dr.sum(out["distance"])
+                                     + 0.7 * dr.sum(out["opacity"]))
+        dr.backward(loss)
+        monkeypatch.undo()
+        return ([np.array(out[key]) for out in outs for key in ("rgb", "distance", "opacity")]
+                + [np.array(dr.grad(params.grid)), np.array(dr.grad(params.background))])
+
+    marched, blocked = rendered(True), rendered(False)
+    for a, b in zip(marched, blocked):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+    g_background = marched[-1].reshape(K, 3)
+    assert np.all(g_background != 0) and len({tuple(np.round(g, 4)) for g in g_background}) == K
+
+
+def test_a_training_step_of_more_members_launches_no_more_kernels():
+    """The members share a step's kernels: four members launch (nearly) as
+    many as one, instead of kernels of their own."""
+    rays = views([[0.0, 0.3, 2.2], [2.2, 0.3, 0.0]], width=8, height=8)
+    counts = {}
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        for K in (1, 4):
+            ens = Ensemble(*BOX, n_members=K, config=tiny_config(n_samples=8, batch_rays=64), seed=0)
+            ens.set_rays(*rays)
+            ens.train(1)  # compiles
+            dr.kernel_history()
+            ens.train(1)
+            counts[K] = sum(k["type"] == dr.KernelType.JIT for k in dr.kernel_history())
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    assert counts[4] <= counts[1] + 2, counts
 
 
 def test_render_gradient_wrt_grid_matches_finite_differences():

@@ -17,7 +17,7 @@ after a 100-step warm-up.
 
 On the CPU the step is also timed with the compositing of the GPU path
 (blocked prefix sums and reductions over per-sample arrays) in place of the
-CPU's ray marching, the two kinds of steps interleaved
+CPU's ray marching, the two kinds of steps taking turns likewise
 (``blocked_compositing_step_ms``).
 
 Diagnostics explain how the step time grows with K:
@@ -124,21 +124,23 @@ def compositing(marched: bool):
 
 def time_steps(ks, rays, cfg, steps, repeats, warmup, kinds=(True,)):
     """Per-step wall times for each K and compositing (``kinds``: marched
-    or not, see :func:`compositing`), keyed ``(k, marched)``; the steps are
-    interleaved (K=1, K=4, K=1, ...) so that load from other processes hits
-    all alike."""
+    or not, see :func:`compositing`), keyed ``(k, marched)``. Each ensemble
+    trains ``steps`` steps in a row, as training does (so its data stay in the
+    caches), and the ensembles take turns ``repeats`` times (K=1, K=4, K=1,
+    ...) so that load from other processes hits all alike."""
     ens = {}
     for marched in kinds:
         with compositing(marched):
             for k, e in ensembles(ks, rays, cfg, warmup).items():
                 ens[k, marched] = e
     times = {key: [] for key in ens}
-    for _ in range(repeats * steps):
+    for _ in range(repeats):
         for (k, marched), e in ens.items():
             with compositing(marched):
-                t0 = time.perf_counter()
-                e.train(1)
-                times[k, marched].append(time.perf_counter() - t0)
+                for _ in range(steps):
+                    t0 = time.perf_counter()
+                    e.train(1)
+                    times[k, marched].append(time.perf_counter() - t0)
     return times
 
 

@@ -185,10 +185,11 @@ def test_members_marched_together_match_one_by_one(n_members):
     assert not np.allclose(grads[0], grads[-1])  # the members' gradients differ
 
 
-def test_marching_reads_features_a_scatter_has_yet_to_write():
+@pytest.mark.parametrize("n_members", [1, 2])
+def test_marching_reads_features_a_scatter_has_yet_to_write(n_members):
     """Features that are still the pending target of a scatter (as the lookups
-    of empty-space skipping are), beside evaluated ones, composite as their
-    evaluated values do."""
+    of empty-space skipping are), alone or beside evaluated ones, composite as
+    their evaluated values do."""
     raw_np, t_np, delta_np, valid_np, _ = _composite_inputs()
     args = (mi.Float(t_np), mi.Float(delta_np), mi.Bool(valid_np), 16, -1.0, 1 / 1.5)
     pending = dr.zeros(mi.Vector4f, raw_np.shape[1])
@@ -196,8 +197,9 @@ def test_marching_reads_features_a_scatter_has_yet_to_write():
     assert pending[0].state == dr.VarState.Dirty
     other = mi.Vector4f(raw_np[::-1].copy())
     dr.eval(other)
-    got = composite_marched([other, pending], *args)
-    want = composite_marched([other, mi.Vector4f(raw_np)], *args)
+    others = [other] * (n_members - 1)
+    got = composite_marched(others + [pending], *args)
+    want = composite_marched(others + [mi.Vector4f(raw_np)], *args)
     for a, b in zip([v for member in got for v in member], [v for member in want for v in member]):
         np.testing.assert_allclose(np.array(a), np.array(b), rtol=1e-6)
 

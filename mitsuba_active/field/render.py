@@ -192,17 +192,22 @@ class _MarchedComposite(dr.CustomOp):
     def eval(self, raws, t, delta, valid, S, density_bias, inv_diag):
         self.t, self.valid, self.S, self.K = t, valid, S, len(raws)
         self.density_bias, self.inv_diag = density_bias, inv_diag
-        # All members' features of a sample side by side (K*4 floats): the
-        # loop reads them with one packet load per ray instead of K*4
-        # strided gathers. Where the lookups are not yet evaluated, one
-        # kernel traces them, writes them packed and writes t and delta.
+        # Several members' features of a sample side by side (K*4 floats):
+        # the loop reads them with one packet load per ray instead of K*4
+        # strided gathers. One member's 4 are read faster as they are (the
+        # packing's transposes cost more than 4 gathers). Where the lookups are
+        # not yet evaluated, one kernel traces them, writes them (packed) and
+        # writes t and delta.
         n = dr.width(t)
         self.XF = type(mi.ArrayXf())  # for the packet gathers and scatters
-        self.raws = dr.empty(mi.Float, 4 * self.K * n)
-        # Dr.Jit's packet scatter cannot read arrays that a scatter has yet to
-        # write (empty-space skipping's lookups are such): those go first.
-        dr.eval([c for r in raws for c in r if c.state == dr.VarState.Dirty])
-        dr.scatter(self.raws, self.XF(*[r[ch] for r in raws for ch in range(4)]), dr.arange(mi.UInt32, n))
+        if self.K > 1:
+            self.raws = dr.empty(mi.Float, 4 * self.K * n)
+            # Dr.Jit's packet scatter cannot read arrays that a scatter has yet to
+            # write (empty-space skipping's lookups are such): those go first.
+            dr.eval([c for r in raws for c in r if c.state == dr.VarState.Dirty])
+            dr.scatter(self.raws, self.XF(*[r[ch] for r in raws for ch in range(4)]), dr.arange(mi.UInt32, n))
+        else:
+            self.raws = raws[0]
         dr.eval(self.raws, t, delta)
         self.first = dr.arange(mi.UInt32, n // S) * S  # each ray's first sample
         self.delta = dr.gather(mi.Float, delta, self.first)
@@ -228,7 +233,10 @@ class _MarchedComposite(dr.CustomOp):
             j = self.first + i
             valid = self.valid if self.per_ray else dr.gather(mi.Bool, self.valid, j)
             t_i = dr.gather(mi.Float, self.t, j)  # read once for all members
-            raws = dr.gather(self.XF, self.raws, j, shape=(4 * self.K, dr.width(j)))
+            if self.K > 1:
+                raws = dr.gather(self.XF, self.raws, j, shape=(4 * self.K, dr.width(j)))
+            else:
+                raws = dr.gather(mi.Vector4f, self.raws, j)
             marched = []
             for k, (trans, p_rgb, p_dsum, p_opac) in enumerate(sums):
                 raw = mi.Vector4f(*[raws[4 * k + ch] for ch in range(4)])
@@ -381,9 +389,9 @@ def _evaluate_lookups(s: dict, raws: list, return_weights: bool):
 
 
 def _composited(params: FieldParams, s: dict, raws: list, members: list, return_weights=False) -> list:
-    """Composite the evaluated raw features of the members ``members`` (one
-    ``raws`` each; see render_flat): marched together, or one by one with
-    the blocked reductions."""
+    """Composite the raw features of the members ``members`` (one ``raws``
+    each; see render_flat, and :func:`_evaluate_lookups` for when they are
+    evaluated): marched together, or one by one with the blocked reductions."""
     S = int(params.n_samples)
     if _marching(s, return_weights):
         # Without empty-space skipping a sample is valid where its ray is.

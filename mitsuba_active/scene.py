@@ -842,18 +842,18 @@ def _describe(mi_scene, xml_path: Path, digest: str | None) -> Scene:
         if "x_fov" not in sensor_params.keys():
             continue  # not a perspective camera
         film = s.film()
-        full, size, offset = (np.array(v, dtype=np.float64) for v in (film.size(), film.crop_size(),
+        full, crop, offset = (np.array(v, dtype=np.float64) for v in (film.size(), film.crop_size(),
                                                                       film.crop_offset()))
         # A crop window sees part of the film's field of view; off the film's centre (by more
         # than the half pixel an odd difference in size leaves) it is a principal point offset too.
         off_centre += any(float(sensor_params[key][0]) != 0 for key in ("principal_point_offset_x",
                                                                          "principal_point_offset_y")
-                          if key in sensor_params.keys()) or bool(np.any(np.abs(offset + size / 2 - full / 2) > 0.5))
+                          if key in sensor_params.keys()) or bool(np.any(np.abs(offset + crop / 2 - full / 2) > 0.5))
         thin_lens += "aperture_radius" in sensor_params.keys() and float(sensor_params["aperture_radius"][0]) > 0
         fov = math.degrees(2 * math.atan(math.tan(math.radians(float(sensor_params["x_fov"][0])) / 2)
-                                         * size[0] / full[0]))
+                                         * crop[0] / full[0]))
         m = np.array(s.world_transform().matrix, dtype=np.float64).reshape(4, 4)
-        sensors.append(Camera(m, fov, int(size[0]), int(size[1]), float(s.near_clip()), float(s.far_clip())))
+        sensors.append(Camera(m, fov, int(crop[0]), int(crop[1]), float(s.near_clip()), float(s.far_clip())))
     up = snapped_up(sensors[:1])  # the first sensor's, as the scene's author set it up
     floor = any(shape.id() == "floor" for shape in mi_scene.shapes())
     return Scene(xml_path, mi_scene, lo, hi, digest, _is_interior(mi_scene, lo, hi, up), sensors, up, floor,

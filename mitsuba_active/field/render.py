@@ -383,7 +383,8 @@ def _evaluate_lookups(s: dict, raws: list, return_weights: bool):
     """Evaluate the grid lookups (and the sample distances) once, in one
     kernel: otherwise every blocked reduction and every backward kernel would
     re-trace and re-run the 8 * n_levels gathers. When marching, the lookups
-    are left to :func:`composite_marched`, whose kernel writes them packed."""
+    are left to :func:`composite_marched`, whose kernel writes them (packed,
+    for several members)."""
     if not _marching(s, return_weights):
         dr.eval(raws, s["t"], s["delta"])
 

@@ -226,7 +226,8 @@ def test_render_with_weights_matches_marched_render():
 def test_marched_renders_and_gradients_match_the_blocked_ones(monkeypatch, members, skipping):
     """Whole renders of three members, per-ray members or all of them, with
     and without empty-space skipping: the marched path gives the blocked
-    path's outputs and gradients of the grid and of each member's background."""
+    path's outputs, gradients of the grid and of each member's background, and
+    derivative along a grid tangent (forward mode)."""
     from mitsuba_active.field import render
 
     K, S, G = 3, 8, 4
@@ -237,6 +238,18 @@ def test_marched_renders_and_gradients_match_the_blocked_ones(monkeypatch, membe
     jitter = rng.uniform(size=len(o) * S).astype(np.float32)
     grid, background = np.array(ens.params().grid), np.array(ens.params().background) + 0.1 * np.arange(3 * K)
 
+    tangent = rng.normal(size=grid.shape).astype(np.float32)
+
+    def loss_of(params):
+        args = (params, mi.Point3f(o.T), mi.Vector3f(d.T))
+        outs = ([render.render_flat(*args, mi.UInt32(member), jitter=mi.Float(jitter))] if members == "per ray"
+                else render.render_members(*args, jitter=mi.Float(jitter)))
+        loss = 0.0
+        for k, out in enumerate(outs):
+            loss = loss + (k + 1) * (dr.sum(dr.sum(out["rgb"])) + 0.3 * dr.sum(out["distance"])
+                                     + 0.7 * dr.sum(out["opacity"]))
+        return outs, loss
+
     def rendered(marching: bool):
         if not marching:
             monkeypatch.setattr(render, "_marching", lambda s, return_weights: False)
@@ -245,25 +258,27 @@ def test_marched_renders_and_gradients_match_the_blocked_ones(monkeypatch, membe
         if skipping:
             params.occupancy, params.occupancy_resolution = mi.Bool(occupied), G
         dr.enable_grad(params.grid, params.background)
-        args = (params, mi.Point3f(o.T), mi.Vector3f(d.T))
-        outs = ([render.render_flat(*args, mi.UInt32(member), jitter=mi.Float(jitter))] if members == "per ray"
-                else render.render_members(*args, jitter=mi.Float(jitter)))
-        loss = 0.0
-        for k, out in enumerate(outs):
-            loss = loss + (k + 1) * (dr.sum(dr.sum(out["rgb"])) + 0.3 * dr.sum(out["distance"])
-                                     + 0.7 * dr.sum(out["opacity"]))
+        outs, loss = loss_of(params)
         dr.backward(loss)
+        found = ([np.array(out[key]) for out in outs for key in ("rgb", "distance", "opacity")]
+                 + [np.array(dr.grad(params.grid)), np.array(dr.grad(params.background))])
+        params.grid, params.background = mi.Float(grid), mi.Float(background)  # no gradients left in them
+        dr.enable_grad(params.grid)
+        dr.set_grad(params.grid, mi.Float(tangent))
+        found.append(np.array(dr.forward_to(loss_of(params)[1])))
         monkeypatch.undo()
-        return ([np.array(out[key]) for out in outs for key in ("rgb", "distance", "opacity")]
-                + [np.array(dr.grad(params.grid)), np.array(dr.grad(params.background))])
+        return found
 
     marched, blocked = rendered(True), rendered(False)
     for a, b in zip(marched, blocked):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
-    g_background = marched[-1].reshape(K, 3)
+    g_background = marched[-2].reshape(K, 3)
+    assert abs(marched[-1][0]) > 1e-3  # the tangent moves the loss
     assert np.all(g_background != 0) and len({tuple(np.round(g, 4)) for g in g_background}) == K
 
 
+@pytest.mark.skipif(dr.backend_v(mi.Float) != dr.JitBackend.LLVM,
+                    reason="the CPU's ray marching; the GPU's blocked reductions composite member by member")
 def test_a_training_step_of_more_members_launches_no_more_kernels():
     """The members share a step's kernels: four members launch (nearly) as
     many as one, instead of kernels of their own."""

@@ -158,3 +158,25 @@ def query(grid, layout: GridLayout, n_members: int, u, member=None, active=True)
         for ch in range(N_CHANNELS):
             acc[ch] = dr.fma(v[ch], w, acc[ch])
     return mi.Vector4f(*acc)
+
+
+def accumulate(table, layout: GridLayout, n_members: int, u, values, member=None, active=True):
+    """Add ``values`` at positions ``u`` to ``table``, spread over the grid
+    corners with the trilinear weights: the adjoint of :func:`query` (its
+    gradient with respect to the table), in the same layout.
+
+    Args:
+        table: ``mi.Float`` of the grid table's size (the gradient being summed).
+        values: ``K*4`` ``mi.Float`` (every member's 4, member after member)
+            when ``member`` is None, else 4 (that member's).
+        layout, n_members, u, member, active: as for :func:`query`.
+    """
+    K = int(n_members)
+    mode = reduce_mode()
+    XF = type(mi.ArrayXf())
+    for _, idx, w in _corners(layout, u):
+        if member is None:  # one K*4-wide packet per corner, as query gathers it
+            dr.scatter_add(table, XF(*[v * w for v in values]), idx, active, mode=mode)
+        else:
+            dr.scatter_add(table, mi.Vector4f(*[v * w for v in values]), idx * K + mi.UInt32(member), active,
+                           mode=mode)

@@ -8,7 +8,9 @@ lane (:func:`composite_marched`, on the CPU), or uses blocked reductions
 ``dr.block_sum`` for the composited outputs). Each ray carries
 the index of the ensemble member it belongs to, which selects that member's
 slice of the shared parameter table: K members are rendered by one set of
-kernels over K*R rays instead of K Python-driven passes.
+kernels over K*R rays instead of K Python-driven passes. When marching
+the grid's own lookups, the backward march adds each sample's gradient
+straight to the grid's corners (:class:`_MarchedGrid`).
 
 Units: positions and distances are in scene units; directions are unit
 vectors, so the sample parameter ``t`` and the returned distance are metric
@@ -27,7 +29,7 @@ import mitsuba as mi
 import numpy as np
 
 from ..errors import UserError
-from .grid import GridLayout, query
+from .grid import GridLayout, accumulate, query
 from .occupancy import occupied
 
 
@@ -219,6 +221,27 @@ class _MarchedComposite(dr.CustomOp):
         self.out = out
         return out
 
+    def _sample(self, i):
+        """What the loop reads at step ``i`` of every ray: the sample index
+        ``j``, its validity, distance, and each member's raw features."""
+        j = self.first + i
+        valid = self.valid if self.per_ray else dr.gather(mi.Bool, self.valid, j)
+        t_i = dr.gather(mi.Float, self.t, j)  # read once for all members
+        if self.K > 1:
+            packed = dr.gather(self.XF, self.raws, j, shape=(4 * self.K, dr.width(j)))
+            raws = [mi.Vector4f(*[packed[4 * k + ch] for ch in range(4)]) for k in range(self.K)]
+        else:
+            raws = [dr.gather(mi.Vector4f, self.raws, j)]
+        return j, valid, t_i, raws
+
+    def _alpha(self, raw, valid, trans):
+        """Density, colour, where the density's gradient flows, weight and
+        transmittance behind one sample of a member (transmittance ``trans``
+        in front of it)."""
+        sigma, c, live = _raw_to_field(raw, valid, self.density_bias, self.inv_diag)
+        alpha_c = dr.exp(-sigma * self.delta)  # 1 - alpha
+        return sigma, c, live, trans * (1.0 - alpha_c), trans * alpha_c
+
     def _march(self, visit=None, acc=()):
         """March every ray through its samples, all members in one loop:
         returns the members' final (rgb, dsum, opac) and ``acc``. After
@@ -230,21 +253,11 @@ class _MarchedComposite(dr.CustomOp):
         z = dr.zeros(mi.Float, dr.width(self.delta))
 
         def step(i, sums, acc):
-            j = self.first + i
-            valid = self.valid if self.per_ray else dr.gather(mi.Bool, self.valid, j)
-            t_i = dr.gather(mi.Float, self.t, j)  # read once for all members
-            if self.K > 1:
-                raws = dr.gather(self.XF, self.raws, j, shape=(4 * self.K, dr.width(j)))
-            else:
-                raws = dr.gather(mi.Vector4f, self.raws, j)
+            j, valid, t_i, raws = self._sample(i)
             marched = []
-            for k, (trans, p_rgb, p_dsum, p_opac) in enumerate(sums):
-                raw = mi.Vector4f(*[raws[4 * k + ch] for ch in range(4)])
-                sigma, c, live = _raw_to_field(raw, valid, self.density_bias, self.inv_diag)
-                alpha_c = dr.exp(-sigma * self.delta)  # 1 - alpha
-                w = trans * (1.0 - alpha_c)
+            for k, (raw, (trans, p_rgb, p_dsum, p_opac)) in enumerate(zip(raws, sums)):
+                sigma, c, live, w, trans_after = self._alpha(raw, valid, trans)
                 p_rgb, p_dsum, p_opac = dr.fma(c, w, p_rgb), dr.fma(w, t_i, p_dsum), p_opac + w
-                trans_after = trans * alpha_c
                 if visit is not None:
                     out = self.out[k]
                     rest = (out[0] - p_rgb, out[1] - p_dsum, out[2] - p_opac)
@@ -256,32 +269,54 @@ class _MarchedComposite(dr.CustomOp):
         _, sums, acc = dr.while_loop((mi.UInt32(0), start, acc), lambda i, *_: i < self.S, step)
         return tuple(member[1:] for member in sums), acc
 
-    def backward(self):
+    def _march_gradients(self):
+        """March the rays once more and hand each sample's gradient of the
+        raw features (all members', K*4 values) to :meth:`_write_gradients`.
+
+        For a member with outputs ``O = (rgb, dsum, opac)`` and output gradient
+        ``g``, a sample's value ``s_i = <g, (colour_i, t_i, 1)>`` gives
+        ``d<g, O>/d tau_i = T_{i+1} s_i - sum_{j>i} w_j s_j``; the sum behind
+        ``i`` is ``<g, O>`` minus the running sum up to ``i``, so each member
+        carries two scalars through the loop (transmittance and that sum).
+        ``d<g, O>/d colour_i = w_i g_rgb``.
+        """
         g_out = self.grad_out()
+        total = [dr.dot(g[0], out[0]) + g[1] * out[1] + g[2] * out[2] for g, out in zip(g_out, self.out)]
+
+        def step(i, state):
+            j, valid, t_i, raws = self._sample(i)
+            grads, marched = [], []
+            for k, (raw, (trans, before)) in enumerate(zip(raws, state)):
+                g_rgb, g_dsum, g_opac = g_out[k]
+                sigma, c, live, w, trans_after = self._alpha(raw, valid, trans)
+                s_i = dr.dot(g_rgb, c) + dr.fma(g_dsum, t_i, g_opac)
+                before = dr.fma(w, s_i, before)
+                g_tau = dr.fma(trans_after, s_i, before - total[k])
+                grads.append(dr.select(live, g_tau * self.delta * sigma, 0.0))
+                grads += [g_rgb[ch] * w * c[ch] * (1.0 - c[ch]) for ch in range(3)]
+                marched.append((trans_after, before))
+            self._write_gradients(j, grads, valid)
+            return i + 1, tuple(marched)
+
+        z = dr.zeros(mi.Float, dr.width(self.delta))
+        dr.while_loop((mi.UInt32(0), tuple((z + 1.0, mi.Float(z)) for _ in range(self.K))),
+                      lambda i, _: i < self.S, step)
+
+    def _write_gradients(self, j, grads, valid):
+        """Store sample ``j``'s gradients (``grads``: K*4 ``mi.Float``, laid
+        out as the packed features): one packet store per lane."""
+        dr.scatter(self.grads, self.XF(*grads), j)
+
+    def backward(self):
         n = dr.width(self.t)
-        # The 4 gradients of a sample and member side by side, laid out as
-        # the features: one packet store per lane and member in the loop
-        # instead of 4 scattered ones. The loop writes every sample, so the
-        # array needs no zeroing first.
-        packed = dr.empty(mi.Float, 4 * self.K * n)
-
-        def visit(k, j, sigma, c, t_i, live, w, trans_after, rest, acc):
-            # d(output)/d(tau_i) = T_{i+1} v_i - (what the samples behind i contribute),
-            # with v_i = (colour, t_i, 1); d(rgb)/d(colour_i) = w_i.
-            g_rgb, g_dsum, g_opac = g_out[k]
-            g_tau = (dr.dot(g_rgb, dr.fma(c, trans_after, -rest[0])) + g_dsum * dr.fma(t_i, trans_after, -rest[1])
-                     + g_opac * (trans_after - rest[2]))
-            g_c = [g_rgb[ch] * w * c[ch] * (1.0 - c[ch]) for ch in range(3)]
-            dr.scatter(packed, self.XF(dr.select(live, g_tau * self.delta * sigma, 0.0), *g_c), j * self.K + k)
-            return acc
-
-        self._march(visit)
-        g = dr.gather(self.XF, packed, dr.arange(mi.UInt32, n), shape=(4 * self.K, n))
+        self.grads = dr.empty(mi.Float, 4 * self.K * n)  # the loop writes every sample
+        self._march_gradients()
+        g = dr.gather(self.XF, self.grads, dr.arange(mi.UInt32, n), shape=(4 * self.K, n))
         self.set_grad_in("raws", tuple(mi.Vector4f(*[g[4 * k + ch] for ch in range(4)]) for k in range(self.K)))
 
-    def forward(self):
-        d_raws = self.grad_in("raws")
-
+    def _march_tangents(self, d_raws):
+        """Forward-mode derivatives of the outputs along the members' raw
+        feature tangents ``d_raws`` (one ``mi.Vector4f`` per member)."""
         def visit(k, j, sigma, c, t_i, live, w, trans_after, rest, acc):
             d = dr.gather(mi.Vector4f, d_raws[k], j)
             d_tau = dr.select(live, d[0] * self.delta * sigma, 0.0)
@@ -296,8 +331,48 @@ class _MarchedComposite(dr.CustomOp):
         start = tuple((mi.Color3f(z), mi.Float(z), mi.Float(z)) for _ in range(self.K))
         self.set_grad_out(self._march(visit, start)[1])
 
+    def forward(self):
+        self._march_tangents(self.grad_in("raws"))
+
     def name(self):
         return "composite_marched"
+
+
+class _MarchedGrid(_MarchedComposite):
+    """:class:`_MarchedComposite` of features looked up from a grid table,
+    differentiated with respect to the table itself.
+
+    Its backward march adds each sample's gradient straight to the sample's
+    grid corners (the adjoint of :func:`.grid.query`) instead of writing it
+    out for a separate scatter kernel to read back: for K members that saves
+    writing and reading K*4 floats a sample and tracing the corners twice.
+    """
+
+    def eval(self, grid, raws, lookup, t, delta, valid, S, density_bias, inv_diag):
+        # lookup: (layout, n_members, u, member) as the features were queried.
+        self.grid_width, self.lookup = dr.width(grid), lookup
+        return super().eval(raws, t, delta, valid, S, density_bias, inv_diag)
+
+    def _write_gradients(self, j, grads, valid):
+        layout, n_members, u, member = self.lookup
+        if member is not None and dr.width(member) > 1:
+            member = dr.gather(mi.UInt32, member, j)
+        accumulate(self.grads, layout, n_members, dr.gather(mi.Point3f, u, j), grads, member, valid)
+
+    def backward(self):
+        self.grads = dr.zeros(mi.Float, self.grid_width)
+        self._march_gradients()
+        self.set_grad_in("grid", self.grads)
+
+    def forward(self):
+        layout, n_members, u, member = self.lookup
+        n = dr.width(self.t)
+        valid = dr.gather(mi.Bool, self.valid, dr.arange(mi.UInt32, n) // self.S) if self.per_ray else self.valid
+        d_raws = query(self.grad_in("grid"), layout, n_members, u, member, valid)
+        self._march_tangents(d_raws if member is None else [d_raws])
+
+    def name(self):
+        return "composite_marched_grid"
 
 
 def composite_marched(raw, t, delta, valid, S: int, density_bias: float, inv_diag: float):
@@ -379,20 +454,10 @@ def _marching(s: dict, return_weights: bool) -> bool:
             and not dr.grad_enabled(s["t"], s["delta"]))
 
 
-def _evaluate_lookups(s: dict, raws: list, return_weights: bool):
-    """Evaluate the grid lookups (and the sample distances) once, in one
-    kernel: otherwise every blocked reduction and every backward kernel would
-    re-trace and re-run the 8 * n_levels gathers. When marching, the lookups
-    are left to :func:`composite_marched`, whose kernel writes them (packed,
-    for several members)."""
-    if not _marching(s, return_weights):
-        dr.eval(raws, s["t"], s["delta"])
-
-
 def _composited(params: FieldParams, s: dict, raws: list, members: list, return_weights=False) -> list:
     """Composite the raw features of the members ``members`` (one ``raws``
-    each; see render_flat, and :func:`_evaluate_lookups` for when they are
-    evaluated): marched together, or one by one with the blocked reductions."""
+    each, evaluated or not): marched together, or one by one with the blocked
+    reductions; returns one render_flat dict per member."""
     S = int(params.n_samples)
     if _marching(s, return_weights):
         # Without empty-space skipping a sample is valid where its ray is.
@@ -405,6 +470,12 @@ def _composited(params: FieldParams, s: dict, raws: list, members: list, return_
             sigma, rgb_s = field_at(params, s["u"], member, s["valid"], raw=raw)
             w, rgb, dsum, opac = composite(sigma * s["delta"], rgb_s, s["t"], S)
             sums.append((rgb, dsum, opac, w))
+    return _over_background(params, sums, members, return_weights)
+
+
+def _over_background(params: FieldParams, sums: list, members: list, return_weights: bool) -> list:
+    """render_flat dicts of the members ``members`` from their composited
+    (rgb, distance sum, opacity, weights or None)."""
     outs = []
     for member, (rgb, dsum, opac, w) in zip(members, sums):
         # One background index per ray: the gradient of a background read once and
@@ -416,6 +487,30 @@ def _composited(params: FieldParams, s: dict, raws: list, members: list, return_
             out["weights"] = w
         outs.append(out)
     return outs
+
+
+def _rendered(params: FieldParams, s: dict, member, members: list, return_weights=False) -> list:
+    """Look up and composite the samples ``s``: ``member`` as for
+    :func:`lookup_samples` (None: every member), ``members`` the member of
+    each output (see render_flat)."""
+    if not _marching(s, return_weights):
+        raws = lookup_samples(params, s, member)
+        raws = raws if member is None else [raws]
+        # Evaluated once, in one kernel: otherwise every blocked reduction and every
+        # backward kernel would re-trace and re-run the 8 * n_levels gathers.
+        dr.eval(raws, s["t"], s["delta"])
+        return _composited(params, s, raws, members, return_weights)
+    # The samples first, in a kernel of their own: the lookups' kernel and the
+    # backward march read them instead of each clipping and jittering the rays
+    # again (measured: a training step 8 % faster with one member, 14 % with four).
+    dr.eval(s["u"], s["valid"], s["t"], s["delta"])
+    with dr.suspend_grad():  # _MarchedGrid differentiates the table itself
+        raws = lookup_samples(params, s, member)
+    raws = tuple(raws) if member is None else (raws,)
+    valid = s["valid"] if params.occupancy is not None else s["ray_valid"]
+    sums = dr.custom(_MarchedGrid, params.grid, raws, (params.layout, params.n_members, s["u"], member),
+                     s["t"], s["delta"], valid, int(params.n_samples), float(params.density_bias), 1.0 / params.diag)
+    return _over_background(params, [(rgb, dsum, opac, None) for rgb, dsum, opac in sums], members, return_weights)
 
 
 def render_flat(params: FieldParams, o, d, member, jitter=None, return_weights=False):
@@ -435,9 +530,7 @@ def render_flat(params: FieldParams, o, d, member, jitter=None, return_weights=F
     s = sample_along_rays(o, d, params, jitter)
     mem = mi.UInt32(member)
     m = dr.gather(mi.UInt32, mem, s["ray"]) if dr.width(mem) > 1 else mem
-    raw = lookup_samples(params, s, m)
-    _evaluate_lookups(s, [raw], return_weights)
-    return _composited(params, s, [raw], [mem], return_weights)[0]
+    return _rendered(params, s, m, [mem], return_weights)[0]
 
 
 def render_members(params: FieldParams, o, d, jitter=None, return_weights=False):
@@ -451,9 +544,7 @@ def render_members(params: FieldParams, o, d, jitter=None, return_weights=False)
         list of K dicts as returned by :func:`render_flat`.
     """
     s = sample_along_rays(o, d, params, jitter)
-    raws = lookup_samples(params, s)
-    _evaluate_lookups(s, raws, return_weights)  # one gather kernel for all members
-    return _composited(params, s, raws, list(range(len(raws))), return_weights)
+    return _rendered(params, s, None, list(range(params.n_members)), return_weights)
 
 
 def render_rays_dr(field, o, d, member=0):

@@ -480,7 +480,8 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
         # (in the rig's own frame, where a hemisphere is the band above y_min).
         places = ((np.stack([c.position for c in candidates]) - centre) / axes) @ frame
         length = np.linalg.norm(places, axis=1, keepdims=True)
-        places = places[length[:, 0] > 0] / length[length[:, 0] > 0]
+        away = length[:, 0] > 0  # a camera at the centre has no place on the rig
+        places = places[away] / length[away]
         spiral = fibonacci_directions(_pool_size(len(candidates), n_heldout), 0.5, *band)
         # A hemisphere's rim: as if the rig went on below it, or held-out views crowd along it.
         mirror = (lambda points: _mirrored_below(points, band[0])) if band[0] > -1.0 else None

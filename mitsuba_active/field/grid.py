@@ -174,9 +174,9 @@ def accumulate(table, layout: GridLayout, n_members: int, u, values, member=None
     K = int(n_members)
     mode = reduce_mode()
     XF = type(mi.ArrayXf())
+    mem = None if member is None else mi.UInt32(member)
     for _, idx, w in _corners(layout, u):
-        if member is None:  # one K*4-wide packet per corner, as query gathers it
+        if mem is None:  # one K*4-wide packet per corner, as query gathers it
             dr.scatter_add(table, XF(*[v * w for v in values]), idx, active, mode=mode)
         else:
-            dr.scatter_add(table, mi.Vector4f(*[v * w for v in values]), idx * K + mi.UInt32(member), active,
-                           mode=mode)
+            dr.scatter_add(table, mi.Vector4f(*[v * w for v in values]), idx * K + mem, active, mode=mode)

@@ -349,12 +349,12 @@ class _MarchedGrid(_MarchedComposite):
     """
 
     def eval(self, grid, raws, lookup, t, delta, valid, S, density_bias, inv_diag):
-        # lookup: (layout, n_members, u, member) as the features were queried.
+        # lookup: (layout, n_members, u, member, active), the arguments the features were queried with.
         self.grid_width, self.lookup = dr.width(grid), lookup
         return super().eval(raws, t, delta, valid, S, density_bias, inv_diag)
 
     def _write_gradients(self, j, grads, valid):
-        layout, n_members, u, member = self.lookup
+        layout, n_members, u, member, _ = self.lookup
         if member is not None and dr.width(member) > 1:
             member = dr.gather(mi.UInt32, member, j)
         accumulate(self.grads, layout, n_members, dr.gather(mi.Point3f, u, j), grads, member, valid)
@@ -365,10 +365,8 @@ class _MarchedGrid(_MarchedComposite):
         self.set_grad_in("grid", self.grads)
 
     def forward(self):
-        layout, n_members, u, member = self.lookup
-        n = dr.width(self.t)
-        valid = dr.gather(mi.Bool, self.valid, dr.arange(mi.UInt32, n) // self.S) if self.per_ray else self.valid
-        d_raws = query(self.grad_in("grid"), layout, n_members, u, member, valid)
+        layout, n_members, u, member, active = self.lookup
+        d_raws = query(self.grad_in("grid"), layout, n_members, u, member, active)
         self._march_tangents(d_raws if member is None else [d_raws])
 
     def name(self):
@@ -454,15 +452,20 @@ def _marching(s: dict, return_weights: bool) -> bool:
             and not dr.grad_enabled(s["t"], s["delta"]))
 
 
+def _marched_valid(params: FieldParams, s: dict):
+    """Validity of the samples for :func:`composite_marched`: per ray without
+    empty-space skipping (a sample is valid where its ray is), else per sample."""
+    return s["valid"] if params.occupancy is not None else s["ray_valid"]
+
+
 def _composited(params: FieldParams, s: dict, raws: list, members: list, return_weights=False) -> list:
     """Composite the raw features of the members ``members`` (one ``raws``
     each, evaluated or not): marched together, or one by one with the blocked
     reductions; returns one render_flat dict per member."""
     S = int(params.n_samples)
     if _marching(s, return_weights):
-        # Without empty-space skipping a sample is valid where its ray is.
-        valid = s["valid"] if params.occupancy is not None else s["ray_valid"]
-        sums = composite_marched(raws, s["t"], s["delta"], valid, S, params.density_bias, 1.0 / params.diag)
+        sums = composite_marched(raws, s["t"], s["delta"], _marched_valid(params, s), S, params.density_bias,
+                                 1.0 / params.diag)
         sums = [(rgb, dsum, opac, None) for rgb, dsum, opac in sums]
     else:
         sums = []
@@ -507,9 +510,9 @@ def _rendered(params: FieldParams, s: dict, member, members: list, return_weight
     with dr.suspend_grad():  # _MarchedGrid differentiates the table itself
         raws = lookup_samples(params, s, member)
     raws = tuple(raws) if member is None else (raws,)
-    valid = s["valid"] if params.occupancy is not None else s["ray_valid"]
-    sums = dr.custom(_MarchedGrid, params.grid, raws, (params.layout, params.n_members, s["u"], member),
-                     s["t"], s["delta"], valid, int(params.n_samples), float(params.density_bias), 1.0 / params.diag)
+    lookup = (params.layout, params.n_members, s["u"], member, s["valid"])
+    sums = dr.custom(_MarchedGrid, params.grid, raws, lookup, s["t"], s["delta"], _marched_valid(params, s),
+                     int(params.n_samples), float(params.density_bias), 1.0 / params.diag)
     return _over_background(params, [(rgb, dsum, opac, None) for rgb, dsum, opac in sums], members, return_weights)
 
 

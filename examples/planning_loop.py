@@ -23,7 +23,7 @@ from mitsuba_active.env import ActiveViewEnv, SceneSource
 from mitsuba_active.field import Ensemble, FieldConfig
 from mitsuba_active.metrics import psnr
 from mitsuba_active.planners import PlanningState, make_planner, planner_rng
-from mitsuba_active.run import PLANNER_INIT_SCALE, SPARSE_VIEW_FIELD, predict_view, sparse_candidate_rays, train_on
+from mitsuba_active.run import PLANNER_INIT_SCALE, predict_view, sparse_candidate_rays, train_on
 
 
 def scene_dict() -> dict:
@@ -56,9 +56,9 @@ def main():
                                       n_heldout=3 if tiny else 10, resolution=16 if tiny else 64,
                                       spp=4 if tiny else 64)
     budget = min(args.budget, 4) if tiny else args.budget
-    # The field settings `plan` uses for sparse views; the planner's ensemble starts with a wide
+    # The field settings of `plan` (its default preset); the planner's ensemble starts with a wide
     # spread of features, so that its members disagree where no view has looked yet.
-    field = dict(SPARSE_VIEW_FIELD, **(dict(batch_rays=256, n_samples=16) if tiny else {}))
+    field = dict(batch_rays=256, n_samples=16) if tiny else {}
     steps_per_view, eval_steps = (10, 30) if tiny else (60, 1500)
 
     env = ActiveViewEnv(source, budget=budget)
@@ -69,7 +69,8 @@ def main():
     if planner.needs_ensemble:
         # The field the planner scores with: an ensemble (or, for `variational`, one stochastic field).
         state.ensemble = planner.make_field(source.bbox_min, source.bbox_max, planner.ensemble_size(2),
-                                            FieldConfig(**field, init_scale=PLANNER_INIT_SCALE), args.seed)
+                                            FieldConfig.preset("default", planner=True, **field,
+                                                               init_scale=PLANNER_INIT_SCALE), args.seed)
         # A fixed sparse set of rays per candidate: the planner scores candidates over these.
         state.candidate_rays = sparse_candidate_rays(source.candidates, 32 if tiny else 256, args.seed + 1)
         train_on(state.ensemble, env.views, steps_per_view * len(env.views))
@@ -83,7 +84,8 @@ def main():
         print(f"{len(env.views):2d} views: captured candidate {picks[0]}{best}")
 
     # Evaluation: a fresh field on every captured view, scored on the held-out views.
-    fresh = Ensemble(source.bbox_min, source.bbox_max, n_members=1, config=FieldConfig(**field), seed=args.seed + 1)
+    config = FieldConfig.preset("default", width=source.candidates[0].width, **field)
+    fresh = Ensemble(source.bbox_min, source.bbox_max, n_members=1, config=config, seed=args.seed + 1)
     train_on(fresh, env.views, eval_steps)
     heldout = [source.heldout_view(i) for i in range(len(source.heldout))]
     scores = [psnr(predict_view(fresh, view.camera)["rgb"], view.rgb) for view in heldout]

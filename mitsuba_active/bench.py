@@ -56,7 +56,7 @@ SUMMARY = "summary"
 PROFILES = {
     "quick": dict(seeds=[0], resolution=32, candidates=30, heldout=8, spp=16, ensemble=2,
                   initial_steps=150, steps_per_view=30, eval_steps=600, rays_per_candidate=64,
-                  field={"batch_rays": 2048, "n_samples": 32}),
+                  field_preset="fast", field={"batch_rays": 2048, "n_samples": 32}),
     "full": dict(seeds=[0, 1, 2, 3, 4], resolution=64, candidates=100, heldout=20, spp=64, ensemble=2),
 }
 #: View counts of the tables, as in the seed paper, when every run evaluates them.
@@ -747,7 +747,7 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
     ``overrides`` (the command line's ``--set``) are recorded in ``results.json``.
     With no finished run, nothing is written (an earlier report stays)."""
     from .report import plot_metrics
-    from .run import MIN_FIT_PSNR
+    from .run import fit_too_short
 
     data = collect(jobs)
     scenes = [s.name for s in suite.scenes if s.name in data]
@@ -758,8 +758,7 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
                "table_views": list(views), "runs": len(jobs), "runs_reported": len(reported),
                "unreported_seeds": unreported_seeds(jobs),
                # Runs whose evaluation fields had too few steps to fit their own views.
-               "short_training": sum(any(m.get("fit_psnr", MIN_FIT_PSNR) < MIN_FIT_PSNR for m in r["metrics"])
-                                     for r in reported),
+               "short_training": sum(any(fit_too_short(m) for m in r["metrics"]) for r in reported),
                # Finished runs are kept across upgrades: which versions made the reported ones.
                "versions": [json.loads(v) for v in sorted({json.dumps(r.get("versions"), sort_keys=True)
                                                            for r in reported})],

@@ -27,6 +27,7 @@ with interruptible_imports():  # click and numpy load here, after the package's 
 
     from .console import mitsuba_log_as_warnings, one_line, show_warning
     from .errors import UserError
+    from .field.config import DEFAULT_PRESET, FIELD_PRESETS
     from .imageio_utils import folder_name, new_entries, remove_new
     from .scenes import BUNDLED_SCENE
 
@@ -307,6 +308,9 @@ def _parse_counts(text: str) -> list[int]:
               help="Ensemble training steps per captured view (warm start) [50].")
 @click.option("--eval-views", default="5,10,15,20", show_default=True, help="View counts to evaluate at.")
 @click.option("--eval-steps", type=int, default=None, help="Training steps of each evaluation field [1500].")
+@click.option("--field", "field_preset", type=click.Choice(list(FIELD_PRESETS)), default=DEFAULT_PRESET,
+              show_default=True, help="The radiance fields' preset: "
+                                      + "; ".join(f"{k}: {p.summary}" for k, p in FIELD_PRESETS.items()) + ".")
 @click.option("--distance-weight", type=float, default=0.0, show_default=True,
               help="Weight of the distance loss (0: photometric only).")
 @click.option("--out", "out", type=click.Path(file_okay=False), default=None,
@@ -316,7 +320,7 @@ def _parse_counts(text: str) -> list[int]:
 @_one_line_errors
 def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig, n_candidates, n_heldout,
          resolution, fov, spp, downscale, rays_per_candidate, score_form, planner_option, steps_per_view, eval_views,
-         eval_steps, distance_weight, out, quiet):
+         eval_steps, field_preset, distance_weight, out, quiet):
     """Choose views of SCENE_PATH with a planner and report reconstruction quality.
 
     SCENE_PATH is a Mitsuba scene XML, a mesh (a scene is authored around
@@ -350,7 +354,8 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
                     initial_views=initial_views, ensemble=ensemble, batch=batch, seed=seed,
                     resolution=resolution, candidates=n_candidates, heldout=n_heldout, rig=rig, fov=fov, spp=spp,
                     downscale=downscale, rays_per_candidate=rays_per_candidate,
-                    eval_views=_parse_counts(eval_views), distance_weight=distance_weight)
+                    eval_views=_parse_counts(eval_views), distance_weight=distance_weight,
+                    field_preset=field_preset)
     if steps_per_view is not None:
         cfg.steps_per_view = steps_per_view
     if eval_steps is not None:
@@ -448,6 +453,8 @@ def export(run_dir, out):
 @click.option("--seeds", default=None, help="Comma-separated seeds [the profile's].")
 @click.option("--planners", default=None, help="Comma-separated planners [the suite's].")
 @click.option("--scenes", default=None, help="Comma-separated scene names [all].")
+@click.option("--field", "field_preset", type=click.Choice(list(FIELD_PRESETS)), default=None,
+              help="The radiance field's preset for every run [the suite's, else the profile's].")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="A run setting over the suite's, for every run (repeatable): e.g. ensemble=4, "
                    "field.lr=0.02, planner_options.form=log. Use another --out for each variant.")
@@ -455,7 +462,7 @@ def export(run_dir, out):
               help="Run nothing: write the tables and plots of the runs finished so far.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @_one_line_errors
-def bench(suite, out, profile, workers, seeds, planners, scenes, overrides, report_only, quiet):
+def bench(suite, out, profile, workers, seeds, planners, scenes, field_preset, overrides, report_only, quiet):
     """Run a benchmark SUITE (TOML): scenes x planners x seeds; write tables and plots."""
     from .bench import parse_overrides, run_suite
 
@@ -467,6 +474,8 @@ def bench(suite, out, profile, workers, seeds, planners, scenes, overrides, repo
         seed_list = [int(x) for x in split(seeds)] if seeds else None
     except ValueError:
         raise UserError(f"--seeds takes comma-separated integers, got '{seeds}'") from None
+    if field_preset is not None:
+        overrides = (f"field_preset={field_preset}", *overrides)
     if not out:
         # Each variant of a suite gets a folder of its own: a folder's finished
         # runs are kept only when their settings match.
@@ -488,11 +497,11 @@ def bench(suite, out, profile, workers, seeds, planners, scenes, overrides, repo
             click.echo(f"note: the report covers {summary['runs_reported']} of the suite's {summary['runs']} runs; "
                        "the others have not finished with these settings and planner code", err=True)
         if summary["short_training"]:
-            from .run import MIN_FIT_PSNR
+            from .run import FIT_GAIN_DB, MIN_FIT_PSNR
 
             click.echo(f"note: in {summary['short_training']} of the reported runs the evaluation field fits its own "
-                       f"training views below {MIN_FIT_PSNR:g} dB: raise eval_steps for scores that compare the "
-                       "planners", err=True)
+                       f"training views below {MIN_FIT_PSNR:g} dB, or less than {FIT_GAIN_DB:g} dB better than "
+                       "at its first steps: raise eval_steps for scores that compare the planners", err=True)
         if len(summary["versions"]) > 1:
             click.echo(f"note: the reported runs were made with {len(summary['versions'])} different versions of "
                        "mitsuba-active, Mitsuba or Dr.Jit (see versions in report/results.json)", err=True)

@@ -219,7 +219,8 @@ class DatasetSource:
         if key not in self._views:
             self._views[key] = load_view(frame, self.white_background)
         view = self._views[key]
-        return View(view.rgb.copy(), view.distance.copy(), view.mask.copy(), view.camera)
+        return View(view.rgb.copy(), view.distance.copy(), view.mask.copy(), view.camera, view.known_empty.copy(),
+                    view.background)
 
     def __repr__(self):
         c = self.candidates[0]
@@ -234,13 +235,16 @@ class DatasetSource:
 def load_view(frame: Frame, white_background: bool = True) -> View:
     """Read, composite, crop and downscale one frame's image (and depth map if any)."""
     cam, f = frame.camera, frame.downscale
-    rgb = _read_rgb(frame.image, white_background)
+    rgb, alpha = _read_rgb(frame.image, white_background)
     if rgb.shape[1::-1] != tuple(frame.full_size):
         w, h = frame.full_size
         raise UserError(f"{frame.image} is {rgb.shape[1]}x{rgb.shape[0]} pixels, the dataset says {w}x{h}")
     rgb = _crop(rgb, frame.crop, frame.image)
     # Average in linear light, as a camera pixel (and Mitsuba's box filter) does.
     rgb = linear_to_srgb(area_downscale(srgb_to_linear(rgb), f))
+    # Known empty: every full-resolution pixel under a downscaled one is transparent.
+    empty = (np.zeros(rgb.shape[:2], bool) if alpha is None
+             else area_downscale(_crop(alpha, frame.crop, frame.image), f) <= 0.0)
     distance = np.zeros((cam.height, cam.width), np.float32)
     if frame.depth is not None:
         entry = "distance_file_path" if frame.depth_is_distance else "depth_file_path"
@@ -250,7 +254,8 @@ def load_view(frame: Frame, white_background: bool = True) -> View:
         z = depth[f // 2::f, f // 2::f][: cam.height, : cam.width]
         z = np.where(np.isfinite(z) & (z > 0), z, 0.0)
         distance = (z if frame.depth_is_distance else z * depth_to_distance_factor(cam)).astype(np.float32)
-    return View(rgb.astype(np.float32), distance, distance > 0, cam)
+    background = None if alpha is None else (1.0,) * 3 if white_background else (0.0,) * 3
+    return View(rgb.astype(np.float32), distance, distance > 0, cam, empty, background)
 
 
 def depth_to_distance_factor(camera: Camera) -> np.ndarray:
@@ -290,14 +295,17 @@ def _exr_colour(path: Path, white_background: bool) -> np.ndarray:
         raise UserError(f"{path} has no colour channels (RGB, RGBA or Y), only {', '.join(sorted(ch))}")
     if alpha is not None:
         rgb = rgb + (1.0 - alpha[..., None]) * (1.0 if white_background else 0.0)
-    return linear_to_srgb(rgb)
+    return linear_to_srgb(rgb), alpha
 
 
-def _read_rgb(path: Path, white_background: bool) -> np.ndarray:
-    """(H, W, 3) float32 sRGB in [0, 1]; alpha is composited (in sRGB for PNG and JPEG, the
-    nerf-synthetic convention; in linear light for EXR)."""
+def _read_rgb(path: Path, white_background: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """(H, W, 3) float32 sRGB in [0, 1], alpha composited (in sRGB for PNG and JPEG, the
+    nerf-synthetic convention; in linear light for EXR); and the (H, W) float32 alpha in
+    [0, 1], or None for an image without one."""
     if path.suffix.lower() == ".exr":
-        return np.clip(_exr_colour(path, white_background), 0.0, 1.0).astype(np.float32)
+        rgb, alpha = _exr_colour(path, white_background)
+        alpha = None if alpha is None else np.clip(alpha, 0.0, 1.0).astype(np.float32)
+        return np.clip(rgb, 0.0, 1.0).astype(np.float32), alpha
     import imageio.v3 as iio
     from PIL import Image
 
@@ -311,13 +319,14 @@ def _read_rgb(path: Path, white_background: bool) -> np.ndarray:
     img = raw.astype(np.float32) / scale
     if img.ndim == 2:
         img = img[..., None]
+    alpha = None
     if img.shape[-1] in (2, 4):  # grey + alpha, RGB + alpha
-        alpha = img[..., -1:]
+        alpha = np.clip(img[..., -1], 0.0, 1.0)
         bg = 1.0 if white_background else 0.0
-        img = img[..., :-1] * alpha + bg * (1.0 - alpha)
+        img = img[..., :-1] * alpha[..., None] + bg * (1.0 - alpha[..., None])
     if img.shape[-1] == 1:
         img = np.repeat(img, 3, axis=-1)
-    return np.clip(img, 0.0, 1.0).astype(np.float32)
+    return np.clip(img, 0.0, 1.0).astype(np.float32), alpha
 
 
 def _read_depth(path: Path, entry: str) -> np.ndarray:

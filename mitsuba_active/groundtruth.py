@@ -45,12 +45,39 @@ class View:
         distance: (H, W) float32 distance from the optical centre in scene units; 0 where ``mask`` is False.
         mask: (H, W) bool, True where the pixel-centre ray hits geometry.
         camera: the camera it was taken with.
+        known_empty: (H, W) bool, True where the pixel is known to see no
+            geometry at all (a dataset image's alpha is 0 there), or None
+            (a rendered view's): where neither its centre ray nor those of
+            its 8 neighbours hit (see :attr:`empty`).
+        background: the RGB colour the known-empty pixels show exactly (a
+            dataset's images are composited on it), or None (a rendered
+            view's background is its scene's environment).
     """
 
     rgb: np.ndarray
     distance: np.ndarray
     mask: np.ndarray
     camera: Camera
+    known_empty: np.ndarray | None = None
+    background: tuple | None = None
+
+    @property
+    def empty(self) -> np.ndarray:
+        """(H, W) bool: the pixels known to see nothing, whose rays the empty-ray loss clears.
+
+        A rendered pixel's colour averages its whole footprint, so one whose
+        centre ray misses may still show an edge: only pixels whose 3x3
+        neighbourhood misses count.
+        """
+        if self.known_empty is not None:
+            return self.known_empty
+        hit = np.pad(np.asarray(self.mask, bool), 1, mode="edge")
+        h, w = hit.shape[0] - 2, hit.shape[1] - 2
+        near = np.zeros((h, w), bool)
+        for dy in range(3):
+            for dx in range(3):
+                near |= hit[dy:dy + h, dx:dx + w]
+        return ~near
 
 
 def render_distance(mi_scene, camera: Camera) -> np.ndarray:

@@ -33,6 +33,7 @@ from .cameras import RIG_KINDS, camera_rays, snapped_up
 from .checks import is_number, is_whole
 from .env import ActiveViewEnv, SceneSource
 from .errors import FolderInUse, TrainingDiverged, UserError
+from .field.config import DEFAULT_PRESET, FIELD_PRESETS, LEGACY_PRESET
 from .groundtruth import MAX_SPP, View
 from .imageio_utils import (atomic_write, colorize, folder_lock, new_entries, remove_new, srgb_to_linear, write_exr,
                             write_png)
@@ -68,6 +69,7 @@ class RunConfig:
         eval_views: view counts at which the evaluation field is trained and scored.
         eval_steps: training steps of each evaluation field.
         distance_weight: weight of the distance loss (0: photometric only, as in the seed paper).
+        field_preset: the field's named settings (:data:`~mitsuba_active.field.config.FIELD_PRESETS`).
         field: overrides of :class:`~mitsuba_active.field.FieldConfig` options
             (e.g. ``{"n_samples": 32}``), for the planner's ensemble and the evaluation field alike.
     """
@@ -93,6 +95,7 @@ class RunConfig:
     eval_views: list = field(default_factory=lambda: [5, 10, 15, 20])
     eval_steps: int = 1500
     distance_weight: float = 0.0
+    field_preset: str = DEFAULT_PRESET
     field: dict = field(default_factory=dict)
 
     def __post_init__(self):
@@ -129,6 +132,8 @@ class RunConfig:
                 raise UserError(f"{name} must be a table of options, got {getattr(self, name)!r}")
         if not isinstance(self.rig, str):
             raise UserError(f"rig must be a name, got {self.rig!r}")
+        if not isinstance(self.field_preset, str) or self.field_preset not in FIELD_PRESETS:
+            raise UserError(f"unknown field preset {self.field_preset!r}; choose one of {', '.join(FIELD_PRESETS)}")
 
     def validate(self, n_candidates: int | None = None) -> None:
         """UserError unless the settings make a run (types, ranges, the budget against ``n_candidates``)."""
@@ -193,7 +198,8 @@ class RunConfig:
 # ---------------------------------------------------------------------------
 
 def view_rays(views: list[View]) -> dict:
-    """Flat training rays of captured views: origins, directions, rgb (M,3); distance (M,), hit (M,)."""
+    """Flat training rays of captured views: origins, directions, rgb (M,3); distance, hit, empty (M,);
+    the background colour their empty pixels show, or None."""
     parts = [camera_rays(v.camera) for v in views]
     return {
         "origins": np.concatenate([o for o, _ in parts]),
@@ -201,6 +207,9 @@ def view_rays(views: list[View]) -> dict:
         "rgb": np.concatenate([v.rgb.reshape(-1, 3) for v in views]).astype(np.float32),
         "distance": np.concatenate([v.distance.reshape(-1) for v in views]).astype(np.float32),
         "hit": np.concatenate([v.mask.reshape(-1) for v in views]),
+        "empty": np.concatenate([v.empty.reshape(-1) for v in views]),
+        # The colour the empty pixels show, where the views know it (all alike; else None).
+        "background": views[0].background if len({v.background for v in views}) == 1 else None,
     }
 
 
@@ -218,14 +227,6 @@ def sparse_candidate_rays(candidates, n_rays: int, seed: int) -> tuple[np.ndarra
     return np.stack(o_all), np.stack(d_all)
 
 
-#: Field settings for runs. FieldConfig's learning rate suits dense captures
-#: (50+ views); from 5 to 20 views a gentler one generalises better: with it and
-#: 2 grid levels, held-out PSNR on the bundled scene at 20 views, 64x64, was
-#: 29.3 dB, against 23.2 dB with FieldConfig's defaults of the time (4 levels,
-#: lr 0.05). The grid is named too, so that runs keep it whatever FieldConfig's
-#: defaults become. ``RunConfig.field`` overrides them.
-SPARSE_VIEW_FIELD = {"n_levels": 2, "lr": 0.01}
-
 #: Initial feature spread of the planner's ensemble. Members differ only by
 #: their initialisation, and where no training ray reaches, that is all they
 #: have: a visible spread is what makes them disagree about unobserved space.
@@ -234,11 +235,27 @@ PLANNER_INIT_SCALE = 2.0
 #: Name of the planner's ensemble file in a run folder, after the views it was trained on.
 ENSEMBLE_FILE = re.compile(r"ensemble_\d{3,}\.npz")
 
-#: Below this PSNR of an evaluation field on its own training views (dB),
-#: it has not trained long enough for its held-out scores to compare views:
-#: a run says so (at 50 steps of the defaults' 1500 the bundled scene's
-#: field fits its views to ~11 dB and scores ~11 dB held out, against 22 dB).
+#: An evaluation field that fits its own training views below this PSNR (dB),
+#: or gained less than FIT_GAIN_DB over its training (its background starts
+#: at the empty pixels' colour, which alone may score 20 dB), has not trained
+#: long enough for its held-out scores to compare views: a run says so.
 MIN_FIT_PSNR = 20.0
+FIT_GAIN_DB = 3.0
+
+
+def loss_psnr(losses) -> float:
+    """PSNR (dB) of a mean photometric MSE."""
+    return float(-10.0 * np.log10(max(float(np.mean(losses)), 1e-10)))
+
+
+def fit_too_short(metrics: dict) -> bool:
+    """Whether an evaluation's field fit its training views too poorly to compare views by
+    (see MIN_FIT_PSNR); records from before ``fit_start_psnr`` have only the fixed bar."""
+    fit, start = metrics.get("fit_psnr"), metrics.get("fit_start_psnr")
+    if fit is None:
+        return False
+    return fit < MIN_FIT_PSNR or (start is not None and fit < start + FIT_GAIN_DB)
+
 
 #: Distance-loss weight that ``plan`` suggests for rooms seen from inside.
 #: Trained on colour alone, the sparse-view field fills a room with fog;
@@ -287,6 +304,7 @@ def config_changes(recorded, current: dict, compare_scene: bool = True) -> dict:
             config["planner_options"] = json.loads(json.dumps(resolved, default=_json_default))
         if planner is not None and is_whole(config.get("ensemble")):
             config["ensemble"] = planner.ensemble_size(config["ensemble"]) if planner.needs_ensemble else None
+        config.setdefault("field_preset", LEGACY_PRESET)  # a record from before presets
         scene = config.pop("scene", None)
         if compare_scene:
             config["scene"] = str(Path(scene).resolve()) if scene else scene
@@ -375,7 +393,8 @@ def read_record(path) -> dict:
             raise damaged("its rounds did not pick the views it lists as captured")
     for m in rec["metrics"]:
         if not (isinstance(m, dict) and is_whole(m.get("views")) and is_number(m.get("psnr"))
-                and all(m.get(k) is None or is_number(m[k]) for k in ("ssim", "distance_error", "fit_psnr"))):
+                and all(m.get(k) is None or is_number(m[k])
+                        for k in ("ssim", "distance_error", "fit_psnr", "fit_start_psnr"))):
             raise damaged("an entry of its metrics is not the scores at a view count")
     counts = [m["views"] for m in rec["metrics"]]
     if counts != sorted(set(counts)) or not all(1 <= v <= len(captured) for v in counts):
@@ -456,12 +475,14 @@ def same_config(recorded, current: dict, compare_scene: bool = True) -> bool:
     return not config_differences(recorded, current, compare_scene)
 
 
-def field_config(cfg: RunConfig, planner: bool = True):
+def field_config(cfg: RunConfig, planner: bool = True, width: int | None = None):
     """The :class:`~mitsuba_active.field.FieldConfig` of the planner's ensemble
-    (``planner=True``) or of an evaluation field; UserError on unknown options."""
+    (``planner=True``) or of an evaluation field, for images ``width`` pixels
+    across (None: ``cfg.resolution``); UserError on unknown options."""
     from .field import FieldConfig
 
-    base = {"distance_weight": cfg.distance_weight, **SPARSE_VIEW_FIELD}
+    base = {"distance_weight": cfg.distance_weight,
+            **FIELD_PRESETS[cfg.field_preset].config_options(width or cfg.resolution, planner)}
     if planner:
         base["init_scale"] = PLANNER_INIT_SCALE
     known = {f.name for f in fields(FieldConfig)}
@@ -481,15 +502,11 @@ def has_distances(source) -> bool:
 
 
 def source_field_config(source, cfg: RunConfig, planner: bool = True):
-    """:func:`field_config`, also UserError when the source cannot train such a field."""
-    config = field_config(cfg, planner)
+    """:func:`field_config` for the source's images, also UserError when the source cannot train such a field."""
+    config = field_config(cfg, planner, width=source.candidates[0].width)
     if config.distance_weight > 0 and not has_distances(source):
         raise UserError(f"distance_weight (--distance-weight) needs distances, and {source.name} has no depth maps "
                         "(its frames give no depth_file_path or distance_file_path)")
-    if config.empty_weight > 0 and not isinstance(source, SceneSource):
-        # A dataset's mask marks where the distance is known, not which rays hit nothing.
-        raise UserError("the empty-ray loss (empty_weight) needs rendered ground truth: a dataset "
-                        "does not say which rays hit nothing")
     return config
 
 
@@ -515,7 +532,8 @@ def train_on(ens, views: list[View], steps: int, progress: bool = False, reset_o
             return np.zeros(0)
         raise UserError(f"train_on: no views to train on ({steps!r} steps asked for)")
     r = view_rays(views)
-    ens.set_rays(r["origins"], r["directions"], r["rgb"], r["distance"], r["hit"], reset_occupancy)
+    ens.set_rays(r["origins"], r["directions"], r["rgb"], r["distance"], r["hit"], reset_occupancy, r["empty"],
+                 r["background"])
     return ens.train(steps, progress=progress and steps != 0)
 
 
@@ -532,15 +550,16 @@ def predict_view(ens, camera) -> dict:
 def evaluate(source, views: list[View], cfg: RunConfig, progress: bool = False) -> tuple[dict, list[dict]]:
     """Train a fresh evaluation field on ``views``; score it on every held-out view.
 
-    Returns the metrics (means over held-out views; ``fit_psnr``: the field's
-    PSNR on its own training rays over its last tenth of training steps) and
-    the per-view predictions.
+    Returns the metrics (means over held-out views; ``fit_psnr`` and
+    ``fit_start_psnr``: the field's PSNR on its own training rays over the
+    last and the first tenth of its training steps) and the per-view predictions.
     """
     t0 = time.perf_counter()
     field_ = make_ensemble(source, cfg, 1, seed=cfg.seed + 7919, planner=False)
     losses = train_on(field_, views, cfg.eval_steps, progress)
-    # How well the field fits its own training views (the last tenth of its steps).
-    fit_psnr = float(-10.0 * np.log10(max(np.mean(losses[-max(1, len(losses) // 10):]), 1e-10)))
+    # How well the field fits its own training views (the last tenth of its steps), and fitted them at first.
+    tenth = max(1, len(losses) // 10)
+    fit_psnr, start_psnr = loss_psnr(losses[-tenth:]), loss_psnr(losses[:tenth])
     preds, p_list, s_list, d_list = [], [], [], []
     for i, cam in enumerate(source.heldout):
         gt = source.heldout_view(i)
@@ -552,7 +571,7 @@ def evaluate(source, views: list[View], cfg: RunConfig, progress: bool = False) 
     # SSIM needs 11x11 pixels and the distance error needs hits: without them, None (null in run.json).
     metrics = {"views": len(views), "psnr": float(np.mean(p_list)), "ssim": _mean_or_none(s_list),
                "distance_error": _mean_or_none(d_list), "fit_psnr": round(fit_psnr, 2),
-               "eval_seconds": round(time.perf_counter() - t0, 3)}
+               "fit_start_psnr": round(start_psnr, 2), "eval_seconds": round(time.perf_counter() - t0, 3)}
     return metrics, preds
 
 
@@ -893,10 +912,11 @@ class Run:
                 dist = "n/a" if metrics["distance_error"] is None else f"{metrics['distance_error']:.2f}%"
                 ssim_ = "n/a" if metrics["ssim"] is None else f"{metrics['ssim']:.3f}"
                 self.log(f"  {count:3d} views: PSNR {metrics['psnr']:.2f} dB, SSIM {ssim_}, distance error {dist}")
-                if metrics["fit_psnr"] < MIN_FIT_PSNR and not self._warned_fit:
+                if fit_too_short(metrics) and not self._warned_fit:
                     self._warned_fit = True  # once a run: the later evaluations train as long
                     self.log(f"note: the evaluation field fits its own {count} training views to only "
-                             f"{metrics['fit_psnr']:.1f} dB after {self.cfg.eval_steps} steps: its held-out "
+                             f"{metrics['fit_psnr']:.1f} dB after {self.cfg.eval_steps} steps (from "
+                             f"{metrics['fit_start_psnr']:.1f} dB at first): its held-out "
                              "scores say more about the training than about the views; raise eval_steps "
                              f"(RunConfig.eval_steps, plan --eval-steps; default {RunConfig.eval_steps})")
                 self._save_record()
@@ -942,7 +962,7 @@ class Run:
 
 
 def write_metrics_csv(path, metrics: list[dict]) -> None:
-    cols = ["views", "psnr", "ssim", "distance_error", "fit_psnr", "eval_seconds"]
+    cols = ["views", "psnr", "ssim", "distance_error", "fit_psnr", "fit_start_psnr", "eval_seconds"]
     with atomic_write(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=cols, extrasaction="ignore")
         w.writeheader()

@@ -157,7 +157,7 @@ initial_views = 2
 eval_views = [2, 4]
 initial_steps = 10
 steps_per_view = 5
-eval_steps = 20
+eval_steps = 3
 rays_per_candidate = 16
 field = { batch_rays = 256, n_samples = 16, render_batch = 1024 }
 [[scenes]]
@@ -229,7 +229,7 @@ def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
     assert summary["runs"] == 2 * summary["runs_reported"] == 2 * len(summary["cells"])
     res = CliRunner().invoke(main, ["bench", str(tiny_suite), "--out", str(out), "--seeds", "0,1", "--report-only"])
     assert res.exit_code == 0 and f"covers {len(summary['cells'])} of the suite's {summary['runs']} runs" in res.output
-    # The tiny suite's 20 evaluation steps leave its fields unfit even for their own views.
+    # The tiny suite's 3 evaluation steps leave its fields unfit even for their own views.
     assert f"in {summary['runs_reported']} of the reported runs the evaluation field fits" in res.output
     # Reported with the profile's seed alone, the folder's other seed is named.
     res = CliRunner().invoke(main, ["bench", str(tiny_suite), "--out", str(out), "--seeds", "1", "--report-only"])
@@ -664,8 +664,8 @@ def test_a_changed_suite_is_refused_before_anything_is_replaced(tiny_suite, tmp_
     with pytest.raises(UserError, match="another version of it"):
         run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False)
     assert xml.read_bytes() == before and not [p for p in out.rglob(".*")]
-    tiny_suite.write_text(text.replace("eval_steps = 20", "eval_steps = 25"))
-    with pytest.raises(UserError, match=r"other settings \(eval_steps: 20 -> 25\)"):
+    tiny_suite.write_text(text.replace("eval_steps = 3", "eval_steps = 25"))
+    with pytest.raises(UserError, match=r"other settings \(eval_steps: 3 -> 25\)"):
         run_suite(tiny_suite, out, "quick", planners=["even"], scenes=["ball"], progress=False)
     # Undone, the suite is the same again: its finished run counts.
     tiny_suite.write_text(text)
@@ -817,3 +817,28 @@ def test_a_variants_options_are_checked_before_anything_runs(tiny_suite, tmp_pat
     with pytest.raises(UserError, match="planner 'rfe-x': .*unknown option lam"):
         plan_jobs(load_suite(tiny_suite), tmp_path / "out", "quick")
     assert not (tmp_path / "out").exists()
+
+
+def test_bench_field_sets_every_runs_preset(tiny_suite, tmp_path, monkeypatch):
+    import mitsuba_active.bench as bench_module
+
+    seen = {}
+
+    def fake_run_suite(suite, out, profile, *args, overrides=None, **kw):
+        seen.update(out=out, overrides=overrides)
+        return {"unreported_seeds": [], "cells": [], "runs_reported": 0, "runs": 0, "short_training": 0,
+                "versions": []}
+
+    monkeypatch.setattr(bench_module, "run_suite", fake_run_suite)
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(main, ["bench", str(tiny_suite), "--field", "fast"])
+    assert res.exit_code == 0, res.output
+    assert seen["overrides"] == {"field_preset": "fast"} and "fast" in str(seen["out"])
+    res = CliRunner().invoke(main, ["bench", str(tiny_suite), "--field", "fast", "--set", "field_preset=default"])
+    assert res.exit_code == 2 and "given twice" in res.output
+    # The quick profile trains the fast preset, the full one the default.
+    from mitsuba_active.bench import PROFILES
+    from mitsuba_active.run import RunConfig
+
+    assert PROFILES["quick"]["field_preset"] == "fast" and "field_preset" not in PROFILES["full"]
+    assert RunConfig().field_preset == "default"

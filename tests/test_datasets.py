@@ -329,14 +329,51 @@ def test_estimated_bounds_centre_on_the_object():
     assert np.allclose(0.5 * (hi - lo), 1.1 * 4.0 * math.sin(math.radians(20.0)), rtol=1e-6)
 
 
-def test_the_empty_ray_loss_is_refused_on_a_dataset(tmp_path):
-    from mitsuba_active.run import RunConfig, make_ensemble
+def test_transparent_pixels_are_known_empty_and_others_are_not(tmp_path):
+    rgba = np.zeros((8, 8, 4), np.uint8)
+    rgba[..., :3] = 200
+    rgba[2:6, 2:6, 3] = 255  # the object
+    rgba[0, 0, 3] = 1  # faint: not known to be empty
+    write_dataset(tmp_path, n=6, rgba=rgba)
+    view = DatasetSource.from_path(tmp_path).candidate_view(0)
+    expect = rgba[..., 3] == 0
+    assert np.array_equal(view.empty, expect)
+    assert not view.mask.any()  # no depth maps: no distance is known
+    # Downscaled by 2, a pixel is empty only where all four it averages are.
+    half = DatasetSource.from_path(tmp_path, downscale=2).candidate_view(0)
+    assert np.array_equal(half.empty, expect.reshape(4, 2, 4, 2).all(axis=(1, 3)))
+    # The composite's colour is what the empty pixels show.
+    assert view.background == (1.0, 1.0, 1.0) and np.allclose(view.rgb[expect], 1.0)
+    black = DatasetSource.from_path(tmp_path, white_background=False).candidate_view(0)
+    assert black.background == (0.0, 0.0, 0.0) and np.allclose(black.rgb[expect], 0.0)
 
+
+def test_an_image_without_alpha_knows_no_empty_pixel(tmp_path):
     write_dataset(tmp_path, n=6)
+    view = DatasetSource.from_path(tmp_path).candidate_view(0)
+    assert view.empty.shape == (8, 8) and not view.empty.any() and view.background is None
+
+
+def test_the_empty_ray_loss_clears_a_datasets_transparent_rays(tmp_path):
+    """Trained on RGBA views, the empty-ray loss leaves less opacity on the transparent rays."""
+    from mitsuba_active.run import RunConfig, make_ensemble, train_on
+
+    rgba = np.zeros((16, 16, 4), np.uint8)
+    rgba[..., :3] = 255
+    rgba[5:11, 5:11] = (40, 90, 160, 255)
+    write_dataset(tmp_path, n=8, size=(16, 16), rgba=rgba)
     src = DatasetSource.from_path(tmp_path)
-    make_ensemble(src, RunConfig(), 1, seed=0)
-    with pytest.raises(UserError, match="empty_weight"):
-        make_ensemble(src, RunConfig(field={"empty_weight": 1.0}), 1, seed=0)
+    views = [src.candidate_view(i) for i in range(len(src.candidates))]
+    empty = np.concatenate([v.empty.ravel() for v in views])
+    opacity = []
+    for weight in (0.0, 1.0):
+        cfg = RunConfig(field_preset="fast", field={"empty_weight": weight, "lr": 0.1})
+        ens = make_ensemble(src, cfg, 1, seed=0, planner=False)
+        train_on(ens, views, 150)
+        o = np.concatenate([camera_rays(v.camera)[0] for v in views])
+        d = np.concatenate([camera_rays(v.camera)[1] for v in views])
+        opacity.append(ens.render(o, d)["opacity"][0][empty].mean())
+    assert opacity[1] < 0.5 * opacity[0], opacity
 
 
 def test_a_run_refuses_the_distance_loss_on_a_dataset_without_depth_maps(mic, mic_dir, tmp_path):

@@ -16,6 +16,7 @@ import mitsuba as mi
 
 from mitsuba_active.errors import UserError
 from mitsuba_active.field import Ensemble, FieldConfig
+from mitsuba_active.field.config import FIELD_PRESETS
 from mitsuba_active.field.render import composite, composite_marched, field_at, render_flat
 
 BOX = ([-0.7] * 3, [0.7] * 3)
@@ -650,3 +651,70 @@ def test_rendering_refuses_rays_it_would_misread():
         with pytest.raises(UserError, match="16 origins but 15 directions"):
             call(o, d[1:])
     assert ens.predict(o.reshape(4, 4, 3), d.reshape(4, 4, 3))["rgb_mean"].shape == (16, 3)
+
+
+def test_an_untrained_background_starts_at_a_known_colour():
+    """Images composited on a known colour: a background that starts grey loses the race against fog."""
+    o, d, rgb, dist, hit = views([[0.0, 0.3, 2.2]], width=16, height=16)
+    miss_o, miss_d = np.float32([[0.0, 0.0, 5.0]]), np.float32([[0.0, 1.0, 0.0]])  # misses the box
+    ens = Ensemble(*BOX, n_members=2, config=tiny_config(), seed=3)
+    ens.set_rays(o, d, rgb, dist, hit, background=(0.9, 0.6, 0.2))
+    start = ens.render(miss_o, miss_d)["rgb"][:, 0]
+    # Each member's seeded jitter (+-0.1 logits) stays on top of the colour.
+    assert np.allclose(start, [0.9, 0.6, 0.2], atol=0.03) and not np.allclose(start[0], start[1])
+    ens.train(3)
+    trained = ens.render(miss_o, miss_d)["rgb"][:, 0]
+    ens.set_rays(o, d, rgb, dist, hit, background=(0.1, 0.1, 0.1))  # a trained background is kept
+    assert np.array_equal(ens.render(miss_o, miss_d)["rgb"][:, 0], trained)
+    unknown = Ensemble(*BOX, n_members=1, config=tiny_config(), seed=3)
+    unknown.set_rays(o, d, rgb, dist, hit)
+    assert np.allclose(unknown.render(miss_o, miss_d)["rgb"][0, 0], 0.5, atol=0.03)
+    with pytest.raises(UserError, match=r"background must be 3 numbers in \[0, 1\]"):
+        unknown.set_rays(o, d, rgb, dist, hit, background=(1.0, 2.0, 0.0))
+
+
+def test_the_empty_mask_is_checked():
+    o, d, rgb, dist, hit = views([[0.0, 0.3, 2.2]], width=8, height=8)
+    ens = Ensemble(*BOX, n_members=1, config=tiny_config(), seed=0)
+    with pytest.raises(UserError, match="empty describes 3 rays"):
+        ens.set_rays(o, d, rgb, dist, hit, empty=np.zeros(3, bool))
+    with pytest.raises(UserError, match="empty must be booleans"):
+        ens.set_rays(o, d, rgb, dist, hit, empty=np.full(len(o), 0.5))
+
+
+@pytest.mark.parametrize("name", list(FIELD_PRESETS))
+def test_each_preset_trains_saves_and_loads(name, tmp_path):
+    """Both presets, for 400-pixel images, at tiny sizes (a smaller table, fewer samples):
+    the default's hashed levels and skipping included."""
+    cfg = FieldConfig.preset(name, width=400, log2_table_size=12, n_samples=32, batch_rays=512,
+                             render_batch=1024, occupancy_warmup=2, occupancy_interval=2, lr=0.05)
+    assert cfg.n_levels == (5 if name == "default" else 2)
+    ens = Ensemble(*BOX, n_members=2, config=cfg, seed=1)
+    a = views([[0.0, 0.3, 2.2], [2.2, 0.3, 0.0]], width=16, height=16)
+    ens.set_rays(*a)
+    losses = ens.train(40)
+    assert losses[-5:].mean() < 0.5 * losses[:5].mean()
+    assert (ens.occupancy() is not None) == (cfg.occupancy_resolution > 0)
+    path = tmp_path / "field.npz"
+    ens.save(path)
+    loaded = Ensemble.load(path)
+    o, d = camera_rays([1.0, 1.0, 2.0], width=16, height=16)
+    for key, value in ens.render(o, d).items():
+        assert np.array_equal(value, loaded.render(o, d)[key]), key
+
+
+def test_the_default_grid_follows_the_images_width():
+    grids = {w: FieldConfig.preset("default", width=w) for w in (32, 64, 100, 200, 800)}
+    assert [grids[w].n_levels for w in grids] == [2, 2, 3, 4, 5]
+    assert [grids[w].n_samples for w in grids] == [64, 64, 128, 256, 256]
+    assert [grids[w].occupancy_resolution > 0 for w in grids] == [False, False, True, True, True]
+    # Up to 64 pixels it is the fast preset's grid; the planner's ensemble keeps it at every width.
+    fast = FieldConfig.preset("fast")
+    assert all((g.n_levels, g.n_samples) == (fast.n_levels, fast.n_samples) for g in (grids[32], grids[64]))
+    planner = FieldConfig.preset("default", width=800, planner=True)
+    assert (planner.n_levels, planner.n_samples, planner.occupancy_resolution) == (2, 64, 0)
+
+
+def test_an_unknown_preset_is_named():
+    with pytest.raises(UserError, match="unknown field preset 'huge'; choose one of fast, default"):
+        FieldConfig.preset("huge")

@@ -1,7 +1,7 @@
 import numpy as np
 
 from mitsuba_active.cameras import fibonacci_sphere
-from mitsuba_active.groundtruth import GroundTruth
+from mitsuba_active.groundtruth import GroundTruth, View
 from mitsuba_active.scene import load_scene
 
 
@@ -143,3 +143,15 @@ def test_render_command_replaces_an_earlier_render_whole(spot_xml, tmp_path, mon
     code, text = render()
     assert code == 130 and "\nmitsuba-active: interrupted\n" in text, text  # on a line of its own
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_a_rendered_views_empty_pixels_keep_off_the_edges():
+    """A pixel averages its footprint: one beside a hit may show the object's edge, so it is not known empty."""
+    mask = np.zeros((6, 7), bool)
+    mask[2, 3] = True
+    view = View(np.ones((6, 7, 3), np.float32), np.zeros((6, 7), np.float32), mask, camera=None)
+    near = np.zeros_like(mask)
+    near[1:4, 2:5] = True
+    assert np.array_equal(view.empty, ~near) and view.background is None
+    given = np.zeros_like(mask)
+    assert View(view.rgb, view.distance, mask, None, known_empty=given).empty is given

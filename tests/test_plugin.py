@@ -15,21 +15,24 @@ from mitsuba_active.plugins.radiance_field import AOV_NAMES, NAME
 W, H = 16, 12
 
 
-@pytest.fixture(scope="module")
-def field_path(tmp_path_factory):
-    """A 3-member ensemble trained for a few steps on rays of a textured sphere."""
-    assert register()
-    cfg = FieldConfig(n_levels=2, base_resolution=8, log2_table_size=12, n_samples=32,
-                      batch_rays=512, render_batch=1024)
+def trained_field(path, cfg):
+    """A 3-member ensemble of ``cfg`` trained for a few steps on rays of a ball, saved to ``path``."""
     ens = Ensemble([-0.7] * 3, [0.7] * 3, n_members=3, config=cfg, seed=1)
     o, d = map(np.concatenate, zip(*(camera_rays(c) for c in fibonacci_sphere(4, [0, 0, 0], 3.0, width=16))))
     hit = np.abs(np.cross(o, d)).sum(1) < 0.5  # roughly the rays that pass the centre
     rgb = np.where(hit[:, None], [0.8, 0.3, 0.1], 1.0)
     ens.set_rays(o, d, rgb, np.where(hit, 2.5, 0.0), hit)
     ens.train(5)
-    path = tmp_path_factory.mktemp("plugin") / "field.npz"
     ens.save(path)
     return path
+
+
+@pytest.fixture(scope="module")
+def field_path(tmp_path_factory):
+    assert register()
+    cfg = FieldConfig(n_levels=2, base_resolution=8, log2_table_size=12, n_samples=32,
+                      batch_rays=512, render_batch=1024)
+    return trained_field(tmp_path_factory.mktemp("plugin") / "field.npz", cfg)
 
 
 def pixel_centre_sensor(cam: Camera, spp=1, near=0.5, pixel_format="rgb"):
@@ -68,6 +71,24 @@ def test_plugin_matches_the_library_renderer(field_path, camera):
     assert np.allclose(flat[:, 8], p["opacity"], atol=1e-5)
     # The field is not trivial: members disagree and something is in view.
     assert p["rgb_var"].max() > 1e-6 and p["opacity"].max() > 0.05 and p["distance_mean"].max() > 1.0
+
+
+def test_the_default_preset_renders_as_the_library_renders_it(tmp_path, camera):
+    """Hashed levels and empty-space skipping (the default preset's, at a tiny table size) in the plugin."""
+    assert register()
+    cfg = FieldConfig.preset("default", width=400, log2_table_size=12, n_samples=32, batch_rays=512,
+                             render_batch=1024, occupancy_warmup=1, occupancy_interval=1)
+    path = trained_field(tmp_path / "field.npz", cfg)
+    assert Ensemble.load(path).occupancy() is not None
+    _, img = render(path, pixel_centre_sensor(camera), linear=False)
+    p = Ensemble.load(path).predict(*camera_rays(camera))
+    flat = img.reshape(-1, img.shape[-1])
+    # Mitsuba starts rays at the near plane: a sample within rounding of an
+    # occupancy cell's face may fall on the other side, and a skipped cell's
+    # faint density (below occupancy_threshold) then counts or not.
+    diff = np.abs(flat[:, :3] - p["rgb_mean"]).max(axis=1)
+    assert np.mean(diff < 1e-5) > 0.9 and diff.max() < 1e-2, diff.max()
+    assert np.abs(flat[:, 8] - p["opacity"]).max() < 1e-2 and p["opacity"].max() > 0.05
 
 
 def test_default_output_is_linear_rgb(field_path, camera):

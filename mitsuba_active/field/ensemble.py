@@ -34,6 +34,10 @@ from .render import FieldParams, hash_u32, render_flat, render_members, uniform_
 #: 1e-6 of the longest), as a fraction of the longest side.
 MIN_BOX_SIDE = 0.05
 
+#: A background started at a given colour starts at most this close to 0 or 1
+#: per channel (the sigmoid's gradient vanishes at its ends).
+BACKGROUND_CLIP = 0.02
+
 
 def _member_seeds(seed: int, n: int):
     """Independent per-member seed sequences; member k does not depend on n."""
@@ -132,6 +136,7 @@ class Ensemble:
         grid0 = self._initial_grid(init_grid(self.layout, self.config, seqs))
         bg0 = np.stack([np.random.default_rng(s.spawn(1)[0]).uniform(-0.1, 0.1, 3)
                         for s in seqs]).astype(np.float32)
+        self._background0 = bg0
         self._make_optimizer(grid0, bg0)
         self._step = 0
         self._n_rays = 0
@@ -210,7 +215,8 @@ class Ensemble:
             raise UserError(f"member must be a whole number in [0, {self.n_members}), got {member!r}")
 
     # ------------------------------------------------------------------- data
-    def set_rays(self, origins, directions, rgb, distance, hit, reset_occupancy: bool = True):
+    def set_rays(self, origins, directions, rgb, distance, hit, reset_occupancy: bool = True, empty=None,
+                 background=None):
         """Replace the training rays (parameters and Adam state are kept).
 
         Args:
@@ -218,11 +224,16 @@ class Ensemble:
             rgb: (M,3) target colour in [0,1], distance: (M,) metric distance
             from the origin to the surface (ignored where ``~hit``), or None
             without distances (then ``config.distance_weight`` must be 0),
-            hit: (M,) bool.
+            hit: (M,) bool, where ``distance`` is known.
             reset_occupancy: start the occupancy grid over (new rays may show
                 surfaces where earlier ones saw empty space); False keeps
                 it, e.g. when giving a loaded ensemble back the rays it was
                 trained on.
+            empty: (M,) bool, the rays known to meet no geometry (the
+                empty-ray loss clears them), or None: every ray that does not hit.
+            background: the colour (3 floats in [0, 1]) that empty rays are
+                known to show (a dataset's images composited on it), or None;
+                an untrained ensemble's background starts there.
         """
         self._check_variant()
         o, d = _rays(origins, directions, "set_rays")
@@ -236,7 +247,12 @@ class Ensemble:
         if h.dtype != bool and not np.isin(h, (0, 1)).all():  # 0.2 would read as a hit
             raise UserError("set_rays: hit must be booleans (or 0 and 1)")
         h = h.astype(bool)
-        for name, n in (("rgb", c.shape[0]), ("distance", dist.shape[0]), ("hit", h.shape[0])):
+        e = ~h if empty is None else np.asarray(empty).reshape(-1)
+        if e.dtype != bool and not np.isin(e, (0, 1)).all():
+            raise UserError("set_rays: empty must be booleans (or 0 and 1)")
+        e = e.astype(bool)
+        for name, n in (("rgb", c.shape[0]), ("distance", dist.shape[0]), ("hit", h.shape[0]),
+                        ("empty", e.shape[0])):
             if n != m:
                 raise UserError(f"set_rays: {name} describes {n} rays, origins and directions {m}")
         if m == 0:
@@ -252,12 +268,27 @@ class Ensemble:
         if not (np.isfinite(dist[h]).all() and (dist[h] >= 0).all()):
             raise UserError("set_rays: distance must be a finite number >= 0 where a ray hits")
         dist = np.where(h, dist, 0.0).astype(np.float32)  # unused where nothing is hit
+        e = e & ~h  # a ray with a distance met something
+        if background is not None:
+            bg = np.asarray(background, np.float64).reshape(-1)
+            if bg.shape != (3,) or not (np.isfinite(bg).all() and (bg >= 0).all() and (bg <= 1).all()):
+                raise UserError(f"set_rays: background must be 3 numbers in [0, 1], got {background!r}")
+            if self._step == 0:
+                self._start_background(bg)
         self._rays = dict(o=mi.Point3f(o.T), d=mi.Vector3f(d.T), rgb=mi.Color3f(c.T),
-                          distance=mi.Float(dist), hit=mi.Bool(h))
+                          distance=mi.Float(dist), hit=mi.Bool(h), empty=mi.Bool(e))
         dr.eval(self._rays)
         self._n_rays = m
         if reset_occupancy:
             self._reset_occupancy()
+
+    def _start_background(self, colour):
+        """Start every member's background at ``colour`` plus its seeded jitter:
+        a field whose background starts far from the known one paints fog in
+        front of it faster than the background learns."""
+        p = np.clip(colour, BACKGROUND_CLIP, 1.0 - BACKGROUND_CLIP)
+        logits = self._background0 + np.log(p / (1.0 - p))[None, :]
+        self._opt["background"] = mi.Float(np.ascontiguousarray(logits, np.float32).ravel())
 
     # -------------------------------------------------------------- occupancy
     def _reset_occupancy(self):
@@ -337,15 +368,16 @@ class Ensemble:
         mse = dr.sum(sq) * (1.0 / (N * 3))
         loss = mse + regulariser
         dw, ew = float(cfg.distance_weight), float(cfg.empty_weight)
-        hit = dr.gather(mi.Bool, R["hit"], idx) if dw > 0 or ew > 0 else None
         if ew > 0:
-            # Rays that hit nothing should see the background colour, not
+            # Rays that meet nothing should see the background colour, not
             # fog painted in front of it.
+            empty = dr.gather(mi.Bool, R["empty"], idx)
             esq = 0.0
             for out in outs:
-                esq = esq + dr.select(hit, 0.0, dr.square(out["opacity"]))
+                esq = esq + dr.select(empty, dr.square(out["opacity"]), 0.0)
             loss = loss + ew / N * dr.sum(esq)
         if dw > 0:
+            hit = dr.gather(mi.Bool, R["hit"], idx)
             inv_diag2 = 1.0 / float(np.sum(np.subtract(self.box_max, self.box_min) ** 2))
             dt = dr.gather(mi.Float, R["distance"], idx)
             dsq = 0.0

@@ -369,6 +369,9 @@ def test_the_empty_ray_loss_clears_a_datasets_transparent_rays(tmp_path):
     for weight in (0.0, 1.0):
         cfg = RunConfig(field_preset="fast", field={"empty_weight": weight, "lr": 0.1})
         ens = make_ensemble(src, cfg, 1, seed=0, planner=False)
+        train_on(ens, views, 0)  # the background starts at the composite's white
+        away = ens.render(np.float32([[0, 0, 50]]), np.float32([[0, 0, 1]]))["rgb"][0, 0]
+        assert np.allclose(away, 0.98, atol=0.01), away
         train_on(ens, views, 150)
         o = np.concatenate([camera_rays(v.camera)[0] for v in views])
         d = np.concatenate([camera_rays(v.camera)[1] for v in views])

@@ -50,21 +50,16 @@ from mitsuba_active.errors import UserError  # noqa: E402
 from mitsuba_active.field import Ensemble, FieldConfig  # noqa: E402
 from mitsuba_active.field.config import FIELD_PRESETS  # noqa: E402
 from mitsuba_active.groundtruth import GroundTruth  # noqa: E402
-from mitsuba_active.run import view_rays  # noqa: E402
+from mitsuba_active.run import train_on, view_rays  # noqa: E402
 from mitsuba_active.scene import load_scene, scene_from_mesh  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 MESH = str(ROOT.parent / "shared/data/meshes/spot.obj")
 
 
-def stack_views(views):
-    r = view_rays(views)
-    return tuple(r[k] for k in ("origins", "directions", "rgb", "distance", "hit", "empty", "background"))
-
-
 def evaluate(ens, test):
-    o, d, rgb, dist, hit = test[:5]
-    st = ens.predict(o, d)
+    rgb, dist, hit = test["rgb"], test["distance"], test["hit"]
+    st = ens.predict(test["origins"], test["directions"])
     mse = float(np.mean((np.clip(st["rgb_mean"], 0, 1) - rgb) ** 2))
     out = dict(psnr=-10 * np.log10(mse), dist_rel_err=None, dist_rel_err_median=None)
     if hit.any():
@@ -74,7 +69,8 @@ def evaluate(ens, test):
 
 
 def mesh_views(args):
-    """Training and held-out rays of the mesh's sphere rig, the box, the ground truth's seconds, the image width."""
+    """Training views and held-out rays of the mesh's sphere rig, the box, the ground truth's seconds, the image
+    width."""
     with tempfile.TemporaryDirectory() as tmp:
         xml = scene_from_mesh(args.mesh, Path(tmp) / "scene.xml")
         scene = load_scene(xml)
@@ -82,18 +78,18 @@ def mesh_views(args):
                                            n_heldout=args.test_views, width=args.res)
         gt = GroundTruth(scene, spp=args.spp)
         t0 = time.perf_counter()
-        train = stack_views([gt.render(c) for c in train_cams])
-        test = stack_views([gt.render(c) for c in test_cams])
+        train = [gt.render(c) for c in train_cams]
+        test = view_rays([gt.render(c) for c in test_cams])
         return train, test, (scene.bbox_min, scene.bbox_max), time.perf_counter() - t0, args.res
 
 
 def dataset_views(args):
-    """Training and held-out rays of the dataset, its box, the seconds taken to read them, the image width."""
+    """Training views and held-out rays of the dataset, its box, the seconds taken to read them, the image width."""
     t0 = time.perf_counter()
     src = DatasetSource.from_path(args.dataset, downscale=args.downscale, n_heldout=args.test_views or None,
                                   n_candidates=args.train_views or None)
-    train = stack_views([src.candidate_view(i) for i in range(len(src.candidates))])
-    test = stack_views([src.heldout_view(i) for i in range(len(src.heldout))])
+    train = [src.candidate_view(i) for i in range(len(src.candidates))]
+    test = view_rays([src.heldout_view(i) for i in range(len(src.heldout))])
     return train, test, (src.bbox_min, src.bbox_max), time.perf_counter() - t0, src.candidates[0].width
 
 
@@ -131,7 +127,7 @@ def main(argv=None):
         ap.error(str(exc))
 
     ens = Ensemble(bbox_min, bbox_max, n_members=args.members, config=cfg, seed=args.seed)
-    ens.set_rays(*train[:5], empty=train[5], background=train[6])
+    train_on(ens, train, 0)  # the views' rays, as runs set them
     curve = []
     trained, steps, next_eval = 0.0, 0, args.eval_every
     chunk = 10

@@ -282,9 +282,10 @@ def _read_exr(path: Path, what: str) -> dict:
         raise UserError(f"cannot read {what} {path}: {first_line(exc)}") from None
 
 
-def _exr_colour(path: Path, white_background: bool) -> np.ndarray:
+def _exr_colour(path: Path, white_background: bool) -> tuple[np.ndarray, np.ndarray | None]:
     """(H, W, 3) float32 sRGB of an EXR image: RGB, RGBA or grey (Y); its
-    alpha is premultiplied (EXR's convention), so composited in linear light."""
+    alpha is premultiplied (EXR's convention), so composited in linear light;
+    and its (H, W) alpha, or None."""
     ch = _read_exr(path, "image")
     if "RGBA" in ch:  # OpenEXR groups R, G, B and A
         rgb, alpha = ch["RGBA"][..., :3], ch["RGBA"][..., 3]

@@ -842,3 +842,11 @@ def test_bench_field_sets_every_runs_preset(tiny_suite, tmp_path, monkeypatch):
 
     assert PROFILES["quick"]["field_preset"] == "fast" and "field_preset" not in PROFILES["full"]
     assert RunConfig().field_preset == "default"
+
+
+def test_an_unknown_field_preset_is_one_line_and_writes_nothing(tiny_suite, tmp_path):
+    out = tmp_path / "out"
+    res = CliRunner().invoke(main, ["bench", str(tiny_suite), "--out", str(out), "--set", "field_preset=huge"])
+    assert res.exit_code == 2 and not out.exists()
+    assert res.output.strip().splitlines() == [
+        "mitsuba-active: error: scene 'ball': unknown field preset 'huge'; choose one of fast, default"]

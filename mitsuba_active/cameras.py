@@ -386,6 +386,15 @@ def clip_range(radius: float, reach: float) -> tuple[float, float]:
     return min(1e-3, 1e-2 * radius), max(1e4, 2.0 * reach)
 
 
+def auto_rig(scene) -> tuple[str, str]:
+    """The rig ``auto`` picks for a :class:`~mitsuba_active.scene.Scene`, and why (in words)."""
+    if scene.interior:
+        return "interior", scene.interior_reason
+    if scene.floor:  # views from below a floor would show its underside and nothing else
+        return "hemisphere", "an object on a floor, seen from above it"
+    return "sphere", scene.interior_reason or "an object seen from outside"
+
+
 def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, height=None, fov=None):
     """Candidate and held-out cameras for a :class:`~mitsuba_active.scene.Scene`.
 
@@ -422,8 +431,7 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     height = height or width
     generated = rig
     if rig in ("auto", "xml"):  # the XML's own sensors get held-out views of the right kind
-        # Above a floor: views from below it would show its underside and nothing else.
-        generated = "interior" if scene.interior else "hemisphere" if scene.floor else "sphere"
+        generated = auto_rig(scene)[0]
     if generated == "interior":
         fov = 70.0 if fov is None else fov
         near, far = clip_range(scene.radius, 2.0 * scene.radius)

@@ -241,6 +241,8 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
         raise
     finally:
         shutil.rmtree(stage, ignore_errors=True)
+    for note in _auto_rig_note(rig, source):
+        click.echo(note, err=True)
     click.echo(f"wrote {len(cams)} view{'' if len(cams) == 1 else 's'} to {out}")
 
 
@@ -398,6 +400,18 @@ def _given_options() -> set[str]:
     return {name for name in ctx.params if ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE}
 
 
+def _auto_rig_note(rig: str, source) -> list[str]:
+    """Which rig ``--rig auto`` chose for a scene, why, and how to choose another: a line, or none."""
+    from .cameras import auto_rig
+    from .env import SceneSource
+
+    if rig != "auto" or not isinstance(source, SceneSource):
+        return []
+    chosen, why = auto_rig(source.scene)
+    others = " or ".join(k for k in ("sphere", "hemisphere", "interior") if k != chosen)
+    return [f"note: rig {chosen}, as {source.scene.path.name} is {why}; choose another with --rig {others}"]
+
+
 def _plan(cfg, out: Path, quiet: bool, given=frozenset()) -> dict:
     """Open the scene or dataset ``cfg.scene`` and run (or resume) the run in ``out``.
 
@@ -427,7 +441,8 @@ def _plan(cfg, out: Path, quiet: bool, given=frozenset()) -> dict:
         click.echo(f"note: {Path(cfg.scene).name} is a room seen from inside, which fits far better "
                    f"with the distance maps: try --distance-weight {INTERIOR_DISTANCE_WEIGHT:g}", err=True)
     # tqdm.write keeps a line from landing on a progress bar that is being drawn.
-    return Run(source, cfg, out, progress=not quiet, log=lambda m: tqdm.write(m, file=sys.stderr)).execute()
+    return Run(source, cfg, out, progress=not quiet, log=lambda m: tqdm.write(m, file=sys.stderr),
+               notes=_auto_rig_note(cfg.rig, source)).execute()
 
 
 @main.command()

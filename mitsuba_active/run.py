@@ -635,9 +635,13 @@ def _dataset_differences(source, cfg: RunConfig) -> list[str]:
 
 
 class Run:
-    """One planning run in a folder; ``Run(...).execute()`` runs or resumes it."""
+    """One planning run in a folder; ``Run(...).execute()`` runs or resumes it.
 
-    def __init__(self, source, cfg: RunConfig, out_dir, progress: bool = True, log=print):
+    ``log`` takes the run's messages; ``notes`` are lines it logs once it
+    has written its first record, as its rounds start.
+    """
+
+    def __init__(self, source, cfg: RunConfig, out_dir, progress: bool = True, log=print, notes=()):
         cfg.validate(len(source.candidates))
         # run.json records cfg as how the run was made: it must describe the source.
         unlike = source_differences(source, cfg)
@@ -645,7 +649,7 @@ class Run:
             raise UserError(f"the run's settings do not describe its view source: {'; '.join(unlike)} "
                             "(make the source with RunConfig.open_source())")
         self.source, self.cfg, self.out = source, cfg, Path(out_dir)
-        self.progress, self.log = progress, log
+        self.progress, self.log, self.notes = progress, log, tuple(notes)
         self.planner = make_planner(cfg.planner, **cfg.planner_options)
         self.planner_digest = planner_digest(cfg.planner)  # of the code just loaded
         self.planner.check_ensemble_size(cfg.ensemble)
@@ -863,6 +867,8 @@ class Run:
                 self._add_planning_time(time.perf_counter() - t0)
             state.ensemble = self.ensemble
         self._save_record()
+        for note in self.notes:
+            self.log(note)
 
         bar = tqdm(total=cfg.budget, initial=len(self.env.captured), desc=planner_label(cfg.planner), unit="view",
                    disable=not self.progress)

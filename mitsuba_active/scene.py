@@ -27,6 +27,7 @@ import numpy as np
 from .checks import is_number, is_whole, not_a_file
 from .errors import UserError
 from .imageio_utils import new_entries, remove_new
+from .probes import classify, first_hits
 from .variant import require_variant
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
@@ -554,7 +555,8 @@ class Scene:
         bbox_min, bbox_max: (3,) float64 scene bounds in scene units.
         content_hash: hex digest of the XML and every file it references;
             None for a scene built in Python (:func:`scene_from_mitsuba`).
-        interior: True when the scene is a room seen from inside.
+        interior: True when the scene is a room seen from inside
+            (:func:`~mitsuba_active.probes.classify`).
         sensors: the XML's own perspective sensors as :class:`Camera` objects.
         up: (3,) world up axis, taken from the first sensor's up vector
             (snapped to the nearest axis), +Y when there is no sensor.
@@ -567,6 +569,8 @@ class Scene:
         sensors_thin_lens: how many of the XML's sensors are thin-lens
             cameras with an aperture, which :attr:`sensors` do not keep (they
             are pinholes: no defocus).
+        interior_reason: why the scene is, or is not, a room, in words for
+            messages ("a room seen from inside: ...").
     """
 
     path: Path
@@ -580,6 +584,7 @@ class Scene:
     floor: bool = False
     sensors_off_centre: int = 0
     sensors_thin_lens: int = 0
+    interior_reason: str = ""
 
     @property
     def name(self) -> str:
@@ -602,7 +607,7 @@ class Scene:
             for sign in (-1.0, 1.0):
                 d = np.zeros((len(points), 3))
                 d[:, axis] = sign
-                hit, front = _first_hits(self.mi_scene, points, d)
+                hit, front = first_hits(self.mi_scene, points, d)
                 free &= ~(hit & ~front)
         return free
 
@@ -706,59 +711,6 @@ def _load_mitsuba(xml_path: Path, **params):
         raise UserError(f"Mitsuba cannot load {xml_path}: {_one_line(exc)}") from None
 
 
-def _first_hits(mi_scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(N,) bool arrays ``hit`` and ``front``: whether each ray (origins and
-    directions (N, 3)) meets a surface, and whether the first one faces it."""
-    import drjit as dr
-    import mitsuba as mi
-
-    o, d = (np.asarray(a, dtype=np.float32) for a in (origins, directions))
-    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, j]) for j in range(3)]),
-                   mi.Vector3f(*[mi.Float(d[:, j]) for j in range(3)]))
-    si = mi_scene.ray_intersect(ray)
-    hit = np.array(si.is_valid())
-    return hit, np.array(dr.dot(si.n, ray.d) < 0) & hit
-
-
-def _is_interior(mi_scene, bbox_min, bbox_max, up=(0.0, 1.0, 0.0), n=128) -> bool:
-    """True when the scene is a room to be seen from inside.
-
-    Rays go out from 27 probe points spread through the box. A probe whose
-    rays first meet back faces lies inside a closed object (a pillar, a
-    table) and is skipped. A free probe is enclosed when most of its rays
-    hit, and mostly front faces: so it is in a room, and also in the hollow
-    of a cup, a bowl or a vase. What tells them apart is where the rays that
-    get out go: a container opens upwards (along ``up``), a room is closed,
-    or open at a side (as the Cornell box is at its front), or has walls
-    that show their backs to rays from outside (a room of one-sided walls,
-    also when it has no ceiling).
-    """
-    from .cameras import fibonacci_directions
-
-    lo, hi = np.asarray(bbox_min, dtype=np.float64), np.asarray(bbox_max, dtype=np.float64)
-    steps = np.array([0.25, 0.5, 0.75])
-    probes = lo + np.stack(np.meshgrid(steps, steps, steps, indexing="ij"), -1).reshape(-1, 3) * (hi - lo)
-    d = fibonacci_directions(n)
-    hit, front = (a.reshape(len(probes), n) for a in _first_hits(mi_scene, np.repeat(probes, n, 0),
-                                                                    np.tile(d, (len(probes), 1))))
-    hits, fronts = hit.sum(axis=1), front.sum(axis=1)
-    free = hits - fronts <= 0.5 * hits
-    enclosed = free & (hits > 0.75 * n) & (fronts > 0.8 * hits)
-    if not enclosed.any() or enclosed.sum() < 0.5 * free.sum():
-        return False
-    escapes = d[None, :, :] * ~hit[enclosed][:, :, None]  # (probes, n, 3), zero where a ray hit
-    opens_upwards = escapes.any() and (escapes @ np.asarray(up, dtype=np.float64)).sum() > 0.5 * (~hit[enclosed]).sum()
-    if not opens_upwards:
-        return True
-    # From outside: rays from a sphere around the box towards points spread through it.
-    m = 512
-    origins = 0.5 * (lo + hi) + np.linalg.norm(hi - lo) * fibonacci_directions(m)
-    targets = lo + np.random.default_rng(0).random((m, 3)) * (hi - lo)
-    toward = (targets - origins) / np.linalg.norm(targets - origins, axis=1, keepdims=True)
-    out_hit, out_front = _first_hits(mi_scene, origins, toward)
-    return bool((out_hit & ~out_front).sum() > 0.5 * out_hit.sum())
-
-
 #: Largest coordinate of a scene's geometry that single-precision rendering
 #: and its squared distances handle (scene units).
 MAX_SCENE_COORDINATE = 1e12
@@ -856,6 +808,7 @@ def _describe(mi_scene, xml_path: Path, digest: str | None) -> Scene:
         sensors.append(Camera(m, fov, int(crop[0]), int(crop[1]), float(s.near_clip()), float(s.far_clip())))
     up = snapped_up(sensors[:1])  # the first sensor's, as the scene's author set it up
     floor = any(shape.id() == "floor" for shape in mi_scene.shapes())
-    return Scene(xml_path, mi_scene, lo, hi, digest, _is_interior(mi_scene, lo, hi, up), sensors, up, floor,
-                 off_centre, thin_lens)
+    enclosure = classify(mi_scene, lo, hi, up)
+    return Scene(xml_path, mi_scene, lo, hi, digest, enclosure.interior, sensors, up, floor,
+                 off_centre, thin_lens, enclosure.reason)
 

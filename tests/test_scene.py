@@ -277,7 +277,56 @@ def _room(pillar=True, outer_walls=False):
     return trimesh.util.concatenate(parts)
 
 
+def _open_top_box():
+    """A box of solid walls with no lid (y up)."""
+    import trimesh
+
+    def slab(extents, at):
+        box = trimesh.creation.box(extents=extents)
+        box.apply_translation(at)
+        return box
+
+    return trimesh.util.concatenate([slab([1, 0.1, 1], [0, -0.45, 0]), slab([0.1, 1, 1], [-0.45, 0, 0]),
+                                     slab([0.1, 1, 1], [0.45, 0, 0]), slab([1, 1, 0.1], [0, 0, -0.45]),
+                                     slab([1, 1, 0.1], [0, 0, 0.45])])
+
+
+def _roofless_room():
+    """Four one-sided walls and a floor, facing in, with no ceiling."""
+    import trimesh
+
+    room = trimesh.creation.box(extents=[4, 2.5, 4])
+    room.invert()
+    room.update_faces(~(room.face_normals[:, 1] < -0.9))  # the ceiling faces down, into the room
+    return room
+
+
+def _holed(kind):
+    """Objects with a hole through them, modelled along z."""
+    import trimesh
+
+    if kind == "torus":
+        return trimesh.creation.torus(1.0, 0.3)
+    if kind == "washer":  # thick: its bore surrounds a probe in most directions
+        return trimesh.creation.annulus(r_min=0.4, r_max=1.0, height=1.5)
+    if kind == "pipe":  # long and thin-walled, with a bore narrower than the spread probe rays find
+        return trimesh.creation.annulus(r_min=0.2, r_max=0.3, height=8.0)
+    return trimesh.creation.annulus(r_min=0.5, r_max=1.0, height=1.6, sections=6)  # a hexagonal nut
+
+
+@pytest.mark.parametrize("kind", ["torus", "washer", "pipe", "nut"])
+@pytest.mark.parametrize("up", ["y", "z"])
+def test_an_object_with_a_hole_is_not_a_room(tmp_path, kind, up):
+    _holed(kind).export(tmp_path / f"{kind}.ply")
+    scene = load_scene(scene_from_mesh(tmp_path / f"{kind}.ply", tmp_path / f"{kind}.xml", up=up))
+    assert scene.interior is False, scene.interior_reason
+    if kind != "torus":  # a torus's hole is too open to surround a probe
+        assert "hole through it" in scene.interior_reason
+
+
 @pytest.mark.parametrize("name,mesh,interior", [("cup", _cup, False), ("vase", lambda: _cup(0.2), False),
+                                                ("open_top_box", _open_top_box, False),
+                                                ("roofless_room", _roofless_room, True),
                                                 ("room_with_pillar", _room, True),
                                                 ("house", lambda: _room(False, True), True),
                                                 ("open_front_room", _open_front_room, True)])
@@ -426,3 +475,24 @@ def test_a_material_texture_left_out_is_named_in_a_warning(tmp_path, shared_data
     used, text = authored("spot.obj", "tex.png")
     assert used == [] and "m_texture.png" in text
     assert authored("spot.obj", "tex/gone.png", texture=False)[0] == []
+
+
+@pytest.mark.parametrize("what", ["washer", "cbox"])
+def test_the_automatic_rig_says_which_and_why(tmp_path, shared_data, what):
+    from click.testing import CliRunner
+
+    from mitsuba_active.cli import main
+
+    if what == "washer":
+        _holed("washer").export(tmp_path / "washer.ply")
+        xml = scene_from_mesh(tmp_path / "washer.ply", tmp_path / "washer.xml", up="z")
+    else:
+        xml = shared_data / "mitsuba/cbox/cbox.xml"
+    result = CliRunner().invoke(main, ["render", str(xml), "-o", str(tmp_path / "views"), "--views", "1",
+                                       "--candidates", "2", "--heldout", "1", "--resolution", "8", "--spp", "1"])
+    assert result.exit_code == 0, result.output
+    notes = [ln for ln in result.output.splitlines() if ln.startswith("note: rig ")]
+    expected = ("note: rig sphere, as washer.xml is an object with a hole through it" if what == "washer" else
+                "note: rig interior, as cbox.xml is a room seen from inside")
+    assert len(notes) == 1 and notes[0].startswith(expected), result.output
+    assert notes[0].endswith("--rig hemisphere or interior" if what == "washer" else "--rig sphere or hemisphere")

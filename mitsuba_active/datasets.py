@@ -32,9 +32,9 @@ import numpy as np
 
 from .cameras import MITSUBA_TO_OPENGL, Camera, rigid_pose
 from .checks import is_number, is_whole
-from .errors import UserError, first_line
+from .errors import UserError
 from .groundtruth import View
-from .imageio_utils import linear_to_srgb, read_exr, srgb_to_linear
+from .imageio_utils import exr_size, linear_to_srgb, read_exr, srgb_to_linear
 
 #: Extensions tried, in order, when a ``file_path`` has none (nerf-synthetic: "./train/r_0").
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".exr", ".PNG", ".JPG", ".JPEG")
@@ -278,8 +278,8 @@ def _read_exr(path: Path, what: str) -> dict:
     """:func:`~mitsuba_active.imageio_utils.read_exr`, with a file it cannot read as a UserError."""
     try:
         return read_exr(path)
-    except Exception as exc:  # noqa: BLE001 (OpenEXR raises RuntimeError, among others)
-        raise UserError(f"cannot read {what} {path}: {first_line(exc)}") from None
+    except ValueError as exc:
+        raise UserError(f"cannot read {what} {path}: {exc}") from None
 
 
 def _exr_colour(path: Path, white_background: bool) -> tuple[np.ndarray, np.ndarray | None]:
@@ -528,14 +528,10 @@ def _full_size(parsed) -> tuple[int, int]:
     if keys["w"] is not None and keys["h"] is not None:
         return int(keys["w"]), int(keys["h"])
     if image.suffix.lower() == ".exr":
-        import OpenEXR
-
         try:
-            with OpenEXR.File(str(image), header_only=True) as f:
-                lo, hi = f.header()["dataWindow"]
-        except Exception as exc:  # noqa: BLE001 (OpenEXR raises RuntimeError, among others)
-            raise UserError(f"cannot read image {image}: {first_line(exc)}") from None
-        return int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
+            return exr_size(image)
+        except ValueError as exc:
+            raise UserError(f"cannot read image {image}: {exc}") from None
     from PIL import Image
 
     try:

@@ -5,7 +5,9 @@ the XML names none); distance is the length of the pixel-centre ray from the
 optical centre to the first hit (not Mitsuba's ``aov`` depth, which starts at
 the near-clip plane). Renders are cached in a content-addressed EXR store:
 the key hashes the scene's content, the pose, the intrinsics, the clip
-distances, the resolution and the sample count.
+distances, the resolution and the sample count. An entry that cannot be read,
+or does not hold the finite RGB and distance of its camera's size, is rendered
+again, with a warning that names it.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -123,6 +126,27 @@ def _path_integrator(variant: str):
     return mi.load_dict({"type": "path"})
 
 
+def read_entry(path: Path, camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """The (H, W, 3) float32 linear RGB and (H, W) float32 distance of the
+    cache entry ``path`` for ``camera``; ValueError saying what is wrong with
+    an entry that cannot be that render (unreadable, other channels, another
+    size, values that are not finite)."""
+    try:
+        ch = read_exr(path)
+    except ValueError as exc:
+        raise ValueError(f"unreadable: {exc}") from None
+    if set(ch) != {"RGB", "Z"}:
+        raise ValueError(f"channels {', '.join(sorted(ch)) or 'none'}, not RGB and Z")
+    linear, distance = ch["RGB"], ch["Z"]
+    wanted = (camera.height, camera.width)
+    for shape in (linear.shape[:2], distance.shape):
+        if shape != wanted:
+            raise ValueError(f"{shape[1]}x{shape[0]} pixels, not {wanted[1]}x{wanted[0]}")
+    if not (np.isfinite(linear).all() and np.isfinite(distance).all()):
+        raise ValueError("NaN or infinite values")
+    return linear, distance
+
+
 class GroundTruth:
     """Renders and caches the views of one scene.
 
@@ -158,10 +182,11 @@ class GroundTruth:
             path = self.cache_dir / key[:2] / f"{key}.exr"
             if path.is_file():
                 try:
-                    ch = read_exr(path)
-                    return self._view(ch["RGB"], ch["Z"], camera)
-                except Exception:
-                    pass  # a damaged entry is simply rendered again
+                    linear, distance = read_entry(path, camera)
+                except ValueError as exc:
+                    warnings.warn(f"cached ground truth {path} is unusable ({exc}); rendering it again", stacklevel=2)
+                else:
+                    return self._view(linear, distance, camera)
         require_variant("rendering ground truth")
         # Seed from the pose so that views are independent but reproducible.
         seed = int(self.key(camera)[:7], 16)

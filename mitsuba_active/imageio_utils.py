@@ -5,20 +5,31 @@ its final name or not at all, so an interrupted run leaves nothing half-written.
 :func:`replaced_folder` replaces a folder whole; :func:`new_entries` and
 :func:`remove_new` undo what a failed command added; :func:`folder_lock` keeps
 two runs out of one folder.
+
+The EXR readers raise ValueError for a file that OpenEXR cannot read whole,
+and keep what the library prints about it off stdout and stderr.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import io
 import os
 import re
 import secrets
 import shutil
+import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from .errors import first_line
 from .interrupts import interrupts_deferred
+
+#: The C library, whose stdio buffers C and C++ code print through (None where it cannot be loaded so).
+_LIBC = ctypes.CDLL(None) if os.name == "posix" else None
 
 
 @contextlib.contextmanager
@@ -130,11 +141,75 @@ def write_exr(path, channels: dict[str, np.ndarray]) -> None:
 
 
 def read_exr(path) -> dict[str, np.ndarray]:
-    """Read an EXR's channels as float32 arrays, RGB grouped to (H,W,3)."""
+    """Read an EXR's channels as float32 arrays, RGB grouped to (H,W,3).
+
+    ValueError, with the library's reason, for a file that OpenEXR cannot
+    read whole (a truncated or garbled one).
+    """
+    return _read_quietly(path, False, lambda f: {k: np.array(v.pixels, dtype=np.float32)
+                                                 for k, v in f.channels().items()})
+
+
+def exr_size(path) -> tuple[int, int]:
+    """(width, height) in pixels of an EXR, from its header; ValueError as :func:`read_exr`."""
+    lo, hi = _read_quietly(path, True, lambda f: f.header()["dataWindow"])
+    return int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
+
+
+def _read_quietly(path, header_only: bool, read):
+    """``read(f)`` of ``OpenEXR.File(path)``, with what the library prints captured.
+
+    OpenEXR reports a damaged file by printing (on stderr from its C library,
+    on stdout from its Python bindings) as well as, or instead of, raising:
+    either makes the read a failure, whose reason is the first line printed.
+    """
     import OpenEXR
 
-    with OpenEXR.File(str(path)) as f:
-        return {k: np.array(v.pixels, dtype=np.float32) for k, v in f.channels().items()}
+    failure = None
+    with _output_captured() as said:
+        try:
+            with OpenEXR.File(str(path), header_only=header_only) as f:
+                result = read(f)
+        except Exception as exc:  # noqa: BLE001 (OpenEXR raises RuntimeError, ValueError, among others)
+            failure = exc
+    reasons = [line.strip().removeprefix(f"{path}: ") for line in said if line.strip()]
+    if failure is not None or reasons:
+        raise ValueError(reasons[0] if reasons else first_line(failure))
+    return result
+
+
+@contextlib.contextmanager
+def _output_captured():
+    """Keep what is printed while the block runs off stdout and stderr: in
+    Python (``sys.stdout``, where OpenEXR's bindings print) and on file
+    descriptors 1 and 2 (where its C and C++ code print). Yields a list of the
+    lines, filled when the block ends."""
+    for stream in (sys.stdout, sys.stderr):  # Python's pending text still goes where it was meant to
+        with contextlib.suppress(Exception):
+            stream.flush()
+    lines = []
+    saved = {}
+    python = io.StringIO()
+    try:
+        for fd in (1, 2):
+            with contextlib.suppress(OSError):  # a closed descriptor has nothing to protect
+                saved[fd] = os.dup(fd)
+        with tempfile.TemporaryFile() as sink:
+            for fd in saved:
+                os.dup2(sink.fileno(), fd)
+            try:
+                with contextlib.redirect_stdout(python), contextlib.redirect_stderr(python):
+                    yield lines
+            finally:
+                if _LIBC is not None:
+                    _LIBC.fflush(None)  # C's stdout is block-buffered when it is not a terminal
+                for fd, copy in saved.items():
+                    os.dup2(copy, fd)
+                sink.seek(0)
+                lines += sink.read().decode(errors="replace").splitlines() + python.getvalue().splitlines()
+    finally:
+        for copy in saved.values():
+            os.close(copy)
 
 
 def linear_to_srgb(x: np.ndarray) -> np.ndarray:

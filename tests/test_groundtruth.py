@@ -1,7 +1,13 @@
+import ctypes
+import re
+import warnings
+
 import numpy as np
+import pytest
 
 from mitsuba_active.cameras import fibonacci_sphere
 from mitsuba_active.groundtruth import GroundTruth, View
+from mitsuba_active.imageio_utils import linear_to_srgb, read_exr, write_exr
 from mitsuba_active.scene import load_scene
 
 
@@ -52,9 +58,104 @@ def test_cache_is_content_addressed_and_atomic(spot_xml, cache_dir):
     assert np.array_equal(first.rgb, again.rgb) and np.array_equal(first.distance, again.distance)
     assert gt.key(cam_a) != gt.key(cam_b)
     assert gt.key(cam_a) != GroundTruth(scene, spp=8, cache_dir=cache_dir).key(cam_a)
-    # A damaged entry is rendered again, not trusted.
-    exrs[0].write_bytes(b"not an exr")
-    assert np.array_equal(gt.render(cam_a).distance, first.distance)
+
+
+def _wrong_size(path):
+    write_exr(path, {"RGB": np.full((8, 8, 3), 0.5, np.float32), "Z": np.ones((8, 8), np.float32)})
+
+
+def _with_nan(path):
+    ch = read_exr(path)
+    ch["RGB"][2:5, 3:7] = np.nan
+    write_exr(path, ch)
+
+
+def _with_inf(path):
+    ch = read_exr(path)
+    ch["Z"][0, 0] = np.inf
+    write_exr(path, ch)
+
+
+def _other_channels(path):
+    ch = read_exr(path)
+    write_exr(path, {"RGB": ch["RGB"]})
+
+
+def _truncated(path):
+    data = path.read_bytes()
+    path.write_bytes(data[:len(data) // 2])
+
+
+def _garbled(path):
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2:] = bytes(b ^ 0x5A for b in data[len(data) // 2:])  # the pixel data, past the header
+    path.write_bytes(bytes(data))
+
+
+def _not_an_exr(path):
+    path.write_bytes(b"not an exr")
+
+
+DAMAGES = {"wrong size": (_wrong_size, r"8x8 pixels, not 16x12"), "NaN": (_with_nan, "NaN or infinite"),
+           "inf": (_with_inf, "NaN or infinite"), "other channels": (_other_channels, "channels RGB, not RGB and Z"),
+           "truncated": (_truncated, "unreadable: "), "garbled": (_garbled, "unreadable: "),
+           "not an EXR": (_not_an_exr, "unreadable: ")}
+
+
+@pytest.fixture(scope="module")
+def spot_view(spot_xml):
+    """A 16x12 camera of the spot scene, and its view rendered without a cache."""
+    scene = load_scene(spot_xml)
+    cam = fibonacci_sphere(1, scene.center, 2.2, 40.0, 16, 12)[0]
+    return scene, cam, GroundTruth(scene, spp=2, cache_dir=False).render(cam)
+
+
+@pytest.mark.parametrize("damage", DAMAGES)
+def test_a_bad_cache_entry_is_rendered_again_with_a_warning(spot_view, cache_dir, damage):
+    """An entry that decodes to something other than its render (or not at
+    all) is named in a warning, rendered again and replaced by a good one."""
+    scene, cam, fresh = spot_view
+    gt = GroundTruth(scene, spp=2, cache_dir=cache_dir)
+    gt.render(cam)
+    (entry,) = cache_dir.rglob("*.exr")
+    spoil, why = DAMAGES[damage]
+    spoil(entry)
+    with pytest.warns(UserWarning, match=re.escape(f"cached ground truth {entry} is unusable (") + why) as caught:
+        view = gt.render(cam)
+    assert len(caught) == 1 and str(caught[0].message).endswith("; rendering it again")
+    assert np.array_equal(view.rgb, fresh.rgb) and np.array_equal(view.distance, fresh.distance)
+    assert np.array_equal(view.mask, fresh.mask)
+    assert [p.name for p in cache_dir.rglob("*")] == [entry.parent.name, entry.name]  # no temporary file left
+    stored = read_exr(entry)
+    assert np.array_equal(linear_to_srgb(stored["RGB"]), fresh.rgb) and np.array_equal(stored["Z"], fresh.distance)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the replaced entry is good: read without a warning
+        again = gt.render(cam)
+    assert np.array_equal(again.rgb, fresh.rgb) and np.array_equal(again.distance, fresh.distance)
+
+
+@pytest.mark.parametrize("damage", ["truncated", "garbled"])
+def test_the_exr_librarys_messages_stay_off_stdout_and_stderr(spot_view, cache_dir, capfd, damage):
+    """OpenEXR prints its complaints about a damaged file, on stderr from its
+    C library and on stdout from its Python bindings."""
+    scene, cam, _ = spot_view
+    gt = GroundTruth(scene, spp=2, cache_dir=cache_dir)
+    gt.render(cam)
+    (entry,) = cache_dir.rglob("*.exr")
+    DAMAGES[damage][0](entry)
+    capfd.readouterr()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        gt.render(cam)
+        DAMAGES[damage][0](entry)
+        with pytest.raises(ValueError) as raised:
+            read_exr(entry)
+    ctypes.CDLL(None).fflush(None)  # what C printed into its buffer shows too
+    assert capfd.readouterr() == ("", "")
+    # The library's reason, without the file's name that the warning gives once.
+    assert [str(w.message).count(str(entry)) for w in caught] == [1]
+    assert re.fullmatch(r"\(EXR_ERR_\w+\) .+", str(raised.value)), raised.value
+    assert f"unusable (unreadable: {raised.value});" in str(caught[0].message)
 
 
 def test_shared_scenes_render_plausibly(shared_data):

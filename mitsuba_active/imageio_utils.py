@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import errno
 import io
 import os
 import re
@@ -131,13 +132,19 @@ def folder_name(text: str) -> str:
 
 
 def write_exr(path, channels: dict[str, np.ndarray]) -> None:
-    """Write float32 channels to an EXR. Keys: ``"RGB"`` (H,W,3) or single names (H,W)."""
+    """Write float32 channels to an EXR. Keys: ``"RGB"`` (H,W,3) or single names (H,W).
+
+    OSError when the file cannot be written (OpenEXR raises RuntimeError for a full disk).
+    """
     import OpenEXR
 
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
     with atomic_write(path) as tmp, OpenEXR.File(header, data) as f:
-        f.write(str(tmp))
+        try:
+            f.write(str(tmp))
+        except RuntimeError as exc:
+            raise OSError(errno.EIO, str(exc).strip()) from None  # atomic_write names the file
 
 
 def read_exr(path) -> dict[str, np.ndarray]:

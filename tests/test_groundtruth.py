@@ -256,3 +256,17 @@ def test_a_rendered_views_empty_pixels_keep_off_the_edges():
     assert np.array_equal(view.empty, ~near) and view.background is None
     given = np.zeros_like(mask)
     assert View(view.rgb, view.distance, mask, None, known_empty=given).empty is given
+
+
+def test_an_exr_the_library_cannot_write_is_an_oserror_and_leaves_nothing(tmp_path, monkeypatch):
+    import OpenEXR
+
+    def full_disk(self, name):
+        raise RuntimeError("Failed to write pixel data: No space left on device")
+
+    monkeypatch.setattr(OpenEXR.File, "write", full_disk)
+    with pytest.raises(OSError) as raised:
+        write_exr(tmp_path / "a.exr", {"RGB": np.zeros((2, 2, 3))})
+    assert raised.value.filename == str(tmp_path / "a.exr")
+    assert raised.value.strerror == "Failed to write pixel data: No space left on device"
+    assert list(tmp_path.iterdir()) == []

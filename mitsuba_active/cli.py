@@ -29,6 +29,7 @@ with interruptible_imports():  # click and numpy load here, after the package's 
     from .errors import UserError
     from .field.config import DEFAULT_PRESET, FIELD_PRESETS
     from .imageio_utils import folder_name, new_entries, remove_new
+    from .scene import DEFAULT_COLOR, UP_AXES, SceneOptions
     from .scenes import BUNDLED_SCENE
 
 
@@ -130,18 +131,23 @@ def main():
 @click.argument("mesh", type=click.Path())  # a folder gets the command's own one-line error
 @click.option("-o", "--output", "out", required=True, type=click.Path(),
               help="Scene XML to write; the normalised mesh (PLY) and texture go beside it.")
-@click.option("--up", type=click.Choice(["y", "z"]), default="y", show_default=True, help="The mesh's up axis.")
+@click.option("--up", type=click.Choice(UP_AXES), default=SceneOptions.up, show_default=True,
+              help="The mesh's up axis; auto: the axis its shape rests on a flat base across, else y (with a "
+                   "warning).")
 @click.option("--color", nargs=3, type=float, default=None,
               help="Diffuse RGB reflectance when the mesh has no texture or vertex colours. "
-                   "Default: its materials' colours (OBJ Kd, glTF baseColorFactor), else 0.6 0.6 0.6.")
+                   "Default: its materials' colours (OBJ Kd, glTF baseColorFactor), else "
+                   f"{' '.join(f'{c:g}' for c in DEFAULT_COLOR)}.")
 @click.option("--texture", type=click.Path(), default=None,
               help="Texture image (the mesh needs UVs). Default: the mesh's own, else its vertex colours, "
                    "if any.")
 @click.option("--no-texture", is_flag=True,
               help="Ignore the mesh's texture and vertex colours: one diffuse colour (--color, else its "
                    "material's if it has just one).")
-@click.option("--env-radiance", type=float, default=1.0, show_default=True, help="Constant environment light.")
-@click.option("--sun", is_flag=True, help="Add a directional sun light.")
+@click.option("--env-radiance", type=float, default=SceneOptions.env_radiance, show_default=True,
+              help="Constant environment light; also the background's colour.")
+@click.option("--sun/--no-sun", default=SceneOptions.sun, show_default=True,
+              help="A directional sun light from above, which shades the object.")
 @click.option("--point-lights", type=click.IntRange(0, 16), default=0, show_default=True)
 @click.option("--floor", is_flag=True, help="Add a floor under the object.")
 @click.option("--two-sided", is_flag=True,
@@ -149,13 +155,15 @@ def main():
 @_one_line_errors
 def scene(mesh, out, up, color, texture, no_texture, env_radiance, sun, point_lights, floor, two_sided):
     """Author a Mitsuba scene XML around MESH (OBJ, PLY, STL, GLB, glTF, OFF)."""
-    from .scene import scene_from_mesh
+    from .scene import authoring_notes, scene_from_mesh
 
     if texture is not None and no_texture:
         raise UserError("give --texture FILE or --no-texture, not both")
     path = scene_from_mesh(mesh, out, up=up, color=None if color is None else tuple(color),
                            texture=False if no_texture else texture, env_radiance=env_radiance, sun=sun,
                            point_lights=point_lights, floor=floor, two_sided=two_sided)
+    for note in authoring_notes(path):
+        click.echo(note, err=True)
     click.echo(f"wrote {path}")
 
 
@@ -333,7 +341,7 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     """
     from .planners import make_planner
     from .run import RunConfig, default_out_dir, undone_unless_resumable
-    from .scene import MESH_SUFFIXES
+    from .scene import MESH_SUFFIXES, authoring_notes
 
     scene_path = str(scene_path or BUNDLED_SCENE)
     given = _given_options()
@@ -369,9 +377,11 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
                    f"initial views or above the budget of {cfg.budget}", err=True)
     out = Path(out) if out else default_out_dir(scene_path, planner, seed)
     with undone_unless_resumable(out):
+        notes = []
         if Path(scene_path).suffix.lower() in MESH_SUFFIXES:
             scene_path = cfg.scene = _author_into_run(scene_path, out)
-        record = _plan(cfg, out, quiet, given)
+            notes = authoring_notes(scene_path)
+        record = _plan(cfg, out, quiet, given, notes)
     rows = ", ".join(f"{m['views']}: {m['psnr']:.2f} dB" for m in record["metrics"])
     click.echo(f"held-out PSNR by views captured: {rows}")
     click.echo(f"results in {out}")
@@ -412,10 +422,11 @@ def _auto_rig_note(rig: str, source) -> list[str]:
     return [f"note: rig {chosen}, as {source.scene.path.name} is {why}; choose another with --rig {others}"]
 
 
-def _plan(cfg, out: Path, quiet: bool, given=frozenset()) -> dict:
+def _plan(cfg, out: Path, quiet: bool, given=frozenset(), notes=()) -> dict:
     """Open the scene or dataset ``cfg.scene`` and run (or resume) the run in ``out``.
 
-    ``given``: the options given on the command line, which must apply."""
+    ``given``: the options given on the command line, which must apply; ``notes``: lines to
+    print as the run starts."""
     from tqdm import tqdm
 
     from .env import SceneSource
@@ -442,7 +453,7 @@ def _plan(cfg, out: Path, quiet: bool, given=frozenset()) -> dict:
                    f"with the distance maps: try --distance-weight {INTERIOR_DISTANCE_WEIGHT:g}", err=True)
     # tqdm.write keeps a line from landing on a progress bar that is being drawn.
     return Run(source, cfg, out, progress=not quiet, log=lambda m: tqdm.write(m, file=sys.stderr),
-               notes=_auto_rig_note(cfg.rig, source)).execute()
+               notes=[*notes, *_auto_rig_note(cfg.rig, source)]).execute()
 
 
 @main.command()

@@ -2,7 +2,7 @@
 
 A generated scene is a Y-up world with the mesh normalised into the unit
 bounding box ``[-0.5, 0.5]^3``, a diffuse (or textured) material, a
-constant environment light, and optionally a sun, point lights and a floor.
+constant environment light and a sun, and optionally point lights and a floor.
 The XML is plain Mitsuba 3 and loads with ``mitsuba.load_file`` alone.
 """
 
@@ -28,6 +28,7 @@ from .checks import is_number, is_whole, not_a_file
 from .errors import UserError
 from .imageio_utils import new_entries, remove_new
 from .probes import classify, first_hits
+from .upaxis import shown_up_axis
 from .variant import require_variant
 
 MESH_SUFFIXES = (".obj", ".ply", ".stl", ".glb", ".gltf", ".off")
@@ -40,12 +41,17 @@ TEXTURE_NAMES = ("{stem}_texture.png", "{stem}_texture.jpg", "{stem}.png", "{ste
 
 #: Half width of the authored floor, in units of the normalised object (which spans 1).
 FLOOR_HALF_WIDTH = 0.8
-#: Diffuse reflectance of a mesh with no texture, vertex colours or material colour of its own.
-DEFAULT_COLOR = (0.6, 0.6, 0.6)
+#: Diffuse reflectance of a mesh with no texture, vertex colours or material colour of its own:
+#: a mid-tone clay, dark enough that its sunlit side stays well below the white background.
+DEFAULT_COLOR = (0.45, 0.3, 0.2)
 #: Most point lights on the ring (as ``scene --point-lights`` allows), and the
 #: deepest path tracer (Mitsuba reads the depth as a 32-bit integer).
 MAX_POINT_LIGHTS = 16
 MAX_DEPTH = 1024
+#: Stands for "--" (an option's dashes) in an XML comment, which may not hold two hyphens.
+COMMENT_DASHES = "\u2011\u2011"
+#: What ``SceneOptions.up`` takes.
+UP_AXES = ("auto", "y", "z")
 
 
 @dataclass
@@ -54,6 +60,9 @@ class SceneOptions:
 
     Attributes:
         up: the mesh's up axis, ``"y"`` or ``"z"``; the scene is Y-up.
+            ``"auto"`` takes the axis the shape rests on a flat base across
+            (:func:`~mitsuba_active.upaxis.shown_up_axis`), else ``"y"``, and
+            warns unless the shape showed Y.
         color: diffuse RGB reflectance in [0, 1] when there is no texture
             (or vertex colours); ``None`` takes the colours the mesh's
             materials give (an OBJ material's ``Kd``, a glTF material's
@@ -64,8 +73,9 @@ class SceneOptions:
             beside it), else uses its vertex colours if it has them;
             ``False`` never textures and ignores vertex colours (and
             material colours, unless there is just one).
-        env_radiance: radiance of the constant environment light.
-        sun: add a directional light from above.
+        env_radiance: radiance of the constant environment light, which is
+            also the background's colour.
+        sun: add a directional light from above, which shades the object.
         point_lights: number of point lights spread on a ring above the object.
         floor: add a diffuse floor under the object.
         two_sided: the object's material reflects on both sides of its
@@ -74,19 +84,19 @@ class SceneOptions:
         max_depth: path tracer depth.
     """
 
-    up: str = "y"
+    up: str = "auto"
     color: tuple | None = None
     texture: str | bool | None = None
     env_radiance: float = 1.0
-    sun: bool = False
+    sun: bool = True
     point_lights: int = 0
     floor: bool = False
     two_sided: bool = False
     max_depth: int = 6
 
     def __post_init__(self):
-        if self.up not in ("y", "z"):
-            raise UserError(f"the up axis must be 'y' or 'z', got {self.up!r}")
+        if self.up not in UP_AXES:
+            raise UserError(f"the up axis must be one of {', '.join(UP_AXES)}, got {self.up!r}")
         color = self.color
         if color is not None:
             if isinstance(color, str) or not hasattr(color, "__len__") or len(color) != 3 \
@@ -141,6 +151,24 @@ def load_mesh(path) -> "trimesh.Trimesh":
                             "vertices closer than 1e-8: scale it up")
         raise UserError(f"mesh {path} is degenerate (zero area or zero extent)")
     return mesh
+
+
+def _up_axis(mesh, mesh_path: Path) -> tuple[str, str | None]:
+    """The up axis ``auto`` takes for a mesh, and a note saying so unless its shape plainly shows Y."""
+    shown = shown_up_axis(mesh)
+    if shown == "z":
+        return "z", (f"{mesh_path.name} rests on a flat base across its z axis, so it was taken as Z-up "
+                     "(--up y keeps its axes)")
+    if shown is None:
+        return "y", f"took y as the up axis of {mesh_path.name}, whose shape shows none (--up z if it is Z-up)"
+    return "y", None
+
+
+def authoring_notes(xml_path) -> list[str]:
+    """The notes :func:`scene_from_mesh` left in a scene XML it wrote (as
+    comments), such as the up axis it took: lines for the user."""
+    return [n.replace(COMMENT_DASHES, "--")
+            for n in re.findall(r"<!-- (note: .*?) -->", Path(xml_path).read_text(errors="replace"))]
 
 
 def _mesh_uv(mesh):
@@ -200,6 +228,18 @@ def _material_images(mesh_path: Path) -> set[Path]:
                 found |= {(mtl.parent / name.decode("utf-8", "replace").split()[-1]).resolve()  # after options
                           for name in re.findall(rb"^[ \t]*map_Kd[ \t]+(\S.*?)[ \t\r]*$", text, re.M)}
     return found
+
+
+def _warn_missing_material_files(mesh_path: Path) -> None:
+    """Warn for each material file (``mtllib``) an OBJ names that is not there: its colours
+    and textures cannot be used, as for a missing texture."""
+    if mesh_path.suffix.lower() != ".obj":
+        return
+    for lib in re.findall(rb"^mtllib[ \t]+(.+?)[ \t\r]*$", mesh_path.read_bytes(), re.M):
+        lib = lib.decode("utf-8", "replace")
+        if not any((mesh_path.parent / name).is_file() for name in (lib, *lib.split())):
+            warnings.warn(f"the material file {mesh_path.parent / lib} named by {mesh_path} is not a file; "
+                          "the scene is authored without its colours and textures", stacklevel=3)
 
 
 def _material_file(mesh_path: Path) -> tuple[Path | None, tuple | None]:
@@ -394,9 +434,10 @@ def _landing_name(staged: Path, out_dir: Path, name_for, replaceable: set[Path])
 
 
 def _scene_xml(mesh_file: str, texture_file: str | None, color: tuple, opts: SceneOptions, bottom: float,
-               vertex_colors: bool) -> str:
+               vertex_colors: bool, notes: list[str]) -> str:
     """The scene XML's text; ``color``: the object's diffuse reflectance where it has no texture or
-    vertex colours; ``bottom``: the object's lowest height (y), where a floor goes."""
+    vertex colours; ``bottom``: the object's lowest height (y), where a floor goes; ``notes``: lines
+    for the user, kept as comments (:func:`authoring_notes`)."""
     c = " ".join(f"{x:g}" for x in color)
     if vertex_colors:
         bsdf = ('<bsdf type="diffuse"><texture type="mesh_attribute" name="reflectance">'
@@ -411,6 +452,7 @@ def _scene_xml(mesh_file: str, texture_file: str | None, color: tuple, opts: Sce
     lines = [
         '<scene version="3.0.0">',
         '    <!-- Generated by mitsuba-active: Y-up, object in [-0.5, 0.5]^3 -->',
+        *(f"    <!-- note: {n.replace('--', COMMENT_DASHES)} -->" for n in notes),
         '    <default name="spp" value="64"/>',
         '    <default name="res" value="256"/>',
         f'    <integrator type="path"><integer name="max_depth" value="{opts.max_depth}"/></integrator>',
@@ -453,6 +495,9 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
     name (``<stem>_scene.ply``, ``<stem>_scene2.ply``, ...). Either every
     file is written, or none is. ``kwargs`` override fields of :class:`SceneOptions`.
 
+    With ``up="auto"``, the axis taken is noted in the XML unless the shape
+    plainly shows Y (:func:`authoring_notes` reads the notes).
+
     ``check``, if given, is called with the new scene's :func:`content_hash`
     once it is authored and validated, before any of its files lands: it
     raises UserError to refuse the scene (a folder holding runs of another
@@ -471,7 +516,9 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
         raise UserError(f"the scene file to write must end in .xml, got '{out_xml}'")
     mesh_path, out_xml = Path(mesh_path), Path(out_xml)
     mesh = load_mesh(mesh_path)
-    vertices = normalise_vertices(mesh.vertices, opts.up)
+    _warn_missing_material_files(mesh_path)
+    up, up_note = _up_axis(mesh, mesh_path) if opts.up == "auto" else (opts.up, None)
+    vertices = normalise_vertices(mesh.vertices, up)
     uv, texture = _find_texture(mesh, mesh_path, opts.texture)
     rgb = _vertex_colors(mesh) if texture is None and opts.texture is None else None
     color = opts.color
@@ -520,7 +567,8 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
             tex_file, there = _landing_name(staging / f"texture{suffix}", out_dir,
                                             lambda tag: f"{stem}{tag}_texture{suffix}", replaceable)
             unchanged |= {tex_file} if there else set()
-        text = _scene_xml(mesh_file, tex_file, color, opts, float(vertices[:, 1].min()), rgb is not None)
+        text = _scene_xml(mesh_file, tex_file, color, opts, float(vertices[:, 1].min()), rgb is not None,
+                          [] if up_note is None else [up_note])
         (staging / out_xml.name).write_text(text)
         try:  # validate before anything lands
             _load_mitsuba(staging / out_xml.name)

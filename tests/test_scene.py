@@ -5,7 +5,7 @@ import mitsuba as mi
 import pytest
 
 from mitsuba_active.errors import UserError
-from mitsuba_active.scene import load_scene, normalise_vertices, scene_from_mesh
+from mitsuba_active.scene import DEFAULT_COLOR, load_scene, normalise_vertices, scene_from_mesh
 
 
 def test_spot_scene_is_textured_normalised_and_loads_in_plain_mitsuba(spot_xml):
@@ -125,7 +125,9 @@ def test_a_meshs_material_colours_are_its_reflectance(tmp_path):
     assert top[0] > 4 * top[2] and bottom[2] > 4 * bottom[0]  # each half in its own material's colour
     for colour in pixels(obj, "given", ([0, 3, 0.01], [0, -3, 0.01]), color=(0.1, 0.7, 0.1)):
         assert colour[1] > 4 * colour[0]  # a colour given wins
-    assert all(np.allclose(c, c.mean(), rtol=0.05) for c in pixels(obj, "plain", ([0, 3, 0.01],), texture=False))
+    shade = np.array(DEFAULT_COLOR) / sum(DEFAULT_COLOR)  # several colours, none taken: the default's hue
+    assert all(np.allclose(c / c.sum(), shade, atol=0.02) for c in pixels(obj, "plain", ([0, 3, 0.01],),
+                                                                          texture=False))
 
     # One material: its colour, as the XML's plain reflectance, equal to the file's linear numbers.
     one = tmp_path / "one"
@@ -133,14 +135,15 @@ def test_a_meshs_material_colours_are_its_reflectance(tmp_path):
     obj = _two_material_obj(one, kd_bottom="0.8 0.05 0.05")
     assert 'value="0.8 0.05 0.05"' in scene_from_mesh(obj, one / "s.xml").read_text()
     (one / "box.mtl").write_text("newmtl top\nKs 0.5 0.5 0.5\nnewmtl bottom\nKs 0.2 0.2 0.2\n")  # no colours
-    assert 'value="0.6 0.6 0.6"' in scene_from_mesh(obj, one / "s.xml").read_text()
+    default = " ".join(f"{c:g}" for c in DEFAULT_COLOR)
+    assert f'value="{default}"' in scene_from_mesh(obj, one / "s.xml").read_text()
 
     # A part whose material names no colour (none, or not a number) takes the default; the others keep theirs.
     for name, kd_top in (("nan", "nan nan nan"), ("none", "")):  # a bare "Kd": trimesh reads no colour
         (tmp_path / name).mkdir()
         top, bottom = pixels(_two_material_obj(tmp_path / name, kd_top=kd_top), f"{name}_out",
                              ([0, 3, 0.01], [0, -3, 0.01]))
-        assert np.isfinite(top).all() and np.allclose(top, top.mean(), rtol=0.05) and bottom[2] > 4 * bottom[0]
+        assert np.isfinite(top).all() and np.allclose(top / top.sum(), shade, atol=0.02) and bottom[2] > 4 * bottom[0]
     # With several materials, an image named like the mesh is its texture (on the file's own UVs), as with one.
     from PIL import Image
 
@@ -496,3 +499,80 @@ def test_the_automatic_rig_says_which_and_why(tmp_path, shared_data, what):
                 "note: rig interior, as cbox.xml is a room seen from inside")
     assert len(notes) == 1 and notes[0].startswith(expected), result.output
     assert notes[0].endswith("--rig hemisphere or interior" if what == "washer" else "--rig sphere or hemisphere")
+
+
+def _airplane():
+    """A Z-up airplane on landing gear: a fuselage along y, wings across x."""
+    import trimesh
+
+    fuselage = trimesh.creation.cylinder(0.08, 1.0)
+    fuselage.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    parts = [fuselage, trimesh.creation.box([1.0, 0.2, 0.03])]
+    for extents, at in (([0.02, 0.15, 0.2], [0, -0.45, 0.12]), ([0.35, 0.1, 0.02], [0, -0.45, 0.02])):
+        parts.append(trimesh.creation.box(extents))
+        parts[-1].apply_translation(at)
+    for at in ((0.15, 0.05, -0.1), (-0.15, 0.05, -0.1), (0, 0.4, -0.1)):
+        parts.append(trimesh.creation.cylinder(0.03, 0.05))
+        parts[-1].apply_translation(at)
+    return trimesh.util.concatenate(parts)
+
+
+@pytest.mark.parametrize("mesh,taken", [("airplane", "z"), ("suzanne", "y"), ("stanford-bunny", "y")])
+def test_the_up_axis_is_taken_from_a_flat_base_and_noted_otherwise(tmp_path, shared_data, mesh, taken):
+    from click.testing import CliRunner
+
+    from mitsuba_active.cli import main
+    from mitsuba_active.scene import authoring_notes
+
+    if mesh == "airplane":
+        _airplane().export(tmp_path / "airplane.ply")
+        path = tmp_path / "airplane.ply"
+    else:
+        path = shared_data / "meshes" / f"{mesh}.obj"
+    result = CliRunner().invoke(main, ["scene", str(path), "-o", str(tmp_path / "auto" / "s.xml")])
+    assert result.exit_code == 0, result.output
+    notes = authoring_notes(tmp_path / "auto" / "s.xml")
+    assert [ln for ln in result.output.splitlines() if ln.startswith("note:")] == notes
+    if mesh == "airplane":  # Y-up in the scene: its height, the shortest side, is along y
+        assert notes == ["note: airplane.ply rests on a flat base across its z axis, so it was taken as Z-up "
+                         "(--up y keeps its axes)"]
+        scene = load_scene(tmp_path / "auto" / "s.xml")
+        extents = scene.bbox_max - scene.bbox_min
+        assert extents[1] == extents.min()
+    elif mesh == "suzanne":  # no flat base: y, said
+        assert notes == ["note: took y as the up axis of suzanne.obj, whose shape shows none (--up z if it is Z-up)"]
+    else:  # the bunny sits on a flat cut: nothing to say
+        assert notes == []
+    given = CliRunner().invoke(main, ["scene", str(path), "-o", str(tmp_path / "given" / "s.xml"), "--up", taken])
+    assert given.exit_code == 0 and "note:" not in given.output
+    ply = f"{path.stem}.ply"
+    assert (tmp_path / "given" / ply).read_bytes() == (tmp_path / "auto" / ply).read_bytes()  # the same axes
+
+
+def test_the_default_look_is_sunlit_clay(tmp_path, shared_data):
+    from mitsuba_active.scene import SceneOptions
+
+    text = scene_from_mesh(shared_data / "meshes" / "suzanne.obj", tmp_path / "a" / "s.xml").read_text()
+    assert 'type="directional"' in text
+    assert f'<emitter type="constant"><rgb name="radiance" value="{SceneOptions.env_radiance:g}"/>' in text
+    assert f'value="{" ".join(f"{c:g}" for c in DEFAULT_COLOR)}"' in text
+    assert 'type="directional"' not in scene_from_mesh(shared_data / "meshes" / "suzanne.obj",
+                                                       tmp_path / "b" / "s.xml", sun=False).read_text()
+    # Shaded: the sunlit top of a ball is brighter than its underside, and well below the white behind it.
+    import trimesh
+
+    from mitsuba_active.cameras import Camera, look_at
+
+    trimesh.creation.icosphere(3).export(tmp_path / "ball.ply")
+    scene = load_scene(scene_from_mesh(tmp_path / "ball.ply", tmp_path / "c" / "s.xml"))
+    image = np.array(mi.render(scene.mi_scene, sensor=Camera(look_at([0, 0, 3], [0, 0, 0]), fov=30.0, width=32,
+                                                                height=32).sensor(16))).mean(axis=2)
+    top, bottom, corner = image[9, 16], image[23, 16], image[0, 0]
+    assert top > 1.4 * bottom and abs(corner - SceneOptions.env_radiance) < 0.02 and top < corner - 0.3
+
+
+def test_a_missing_material_file_is_named_in_a_warning(tmp_path, shared_data):
+    obj = tmp_path / "m.obj"
+    obj.write_text("mtllib gone.mtl\n" + (shared_data / "meshes" / "suzanne.obj").read_text())
+    with pytest.warns(UserWarning, match=f"the material file {tmp_path / 'gone.mtl'} named by {obj} is not a file"):
+        scene_from_mesh(obj, tmp_path / "s.xml")

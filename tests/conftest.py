@@ -26,14 +26,15 @@ def spot_xml(tmp_path_factory, shared_data) -> Path:
 
 @pytest.fixture(scope="session")
 def sphere_xml(tmp_path_factory) -> Path:
-    """A unit-box-normalised icosphere: radius 0.5 at the origin, so distances are analytic."""
+    """A unit-box-normalised icosphere: radius 0.5 at the origin, so distances are analytic, under
+    the uniform light alone, so that its views differ only by what they see of it."""
     import trimesh
 
     from mitsuba_active.scene import scene_from_mesh
 
     d = tmp_path_factory.mktemp("sphere")
     trimesh.creation.icosphere(subdivisions=5, radius=1.0).export(d / "ball.ply")
-    return scene_from_mesh(d / "ball.ply", d / "ball.xml")
+    return scene_from_mesh(d / "ball.ply", d / "ball.xml", up="y", sun=False)
 
 
 @pytest.fixture()

@@ -44,7 +44,7 @@ import numpy as np
 from .checks import choice_named, not_a_file, setting_value, unknown_choice
 from .errors import FolderError, UserError
 from .imageio_utils import folder_name, new_entries, remove_new, replaced_folder
-from .metrics import iqm, standard_error
+from .metrics import DECIMALS, fixed, iqm, standard_error
 
 SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture", "two_sided")
 #: The report's folder of plots over all scenes, beside each scene's (no scene may be named so).
@@ -883,7 +883,8 @@ def _table(summary: dict, scenes, planners, metric: str, title: str):
             for v in views:
                 st = stats[(s, p, v)]
                 row.append(f"{_fmt(st)} ({st['n']})" if per_cell and st["iqm"] is not None else _fmt(st))
-                csv_rows.append([p, s, v, st["iqm"], st["se"], st["n"]])
+                csv_rows.append([p, s, v, fixed(st["iqm"], DECIMALS[metric]), fixed(st["se"], DECIMALS[metric]),
+                                 st["n"]])
             for key, found in times.items():
                 if c and (c.get(key) or {}).get("iqm") is not None:
                     found.append(c[key]["iqm"])

@@ -37,7 +37,7 @@ from .field.config import DEFAULT_PRESET, FIELD_PRESETS, LEGACY_PRESET
 from .groundtruth import MAX_SPP, View
 from .imageio_utils import (atomic_write, colorize, folder_lock, new_entries, remove_new, srgb_to_linear, write_exr,
                             write_png)
-from .metrics import distance_error, psnr, ssim
+from .metrics import DECIMALS, distance_error, fixed, psnr, ssim
 from .planners import PlanningState, make_planner
 from .planners.base import (is_planner_file, planner_digest, planner_folder, planner_label, planner_rng,
                              resolve_reference)
@@ -572,8 +572,8 @@ def evaluate(source, views: list[View], cfg: RunConfig, progress: bool = False) 
         d_list.append(distance_error(pred["distance"], gt.distance, gt.mask))
     # SSIM needs 11x11 pixels and the distance error needs hits: without them, None (null in run.json).
     metrics = {"views": len(views), "psnr": float(np.mean(p_list)), "ssim": _mean_or_none(s_list),
-               "distance_error": _mean_or_none(d_list), "fit_psnr": round(fit_psnr, 2),
-               "fit_start_psnr": round(start_psnr, 2), "eval_seconds": round(time.perf_counter() - t0, 3)}
+               "distance_error": _mean_or_none(d_list), "fit_psnr": fit_psnr, "fit_start_psnr": start_psnr,
+               "eval_seconds": round(time.perf_counter() - t0, 3)}
     return metrics, preds
 
 
@@ -964,12 +964,13 @@ class Run:
 
 
 def write_metrics_csv(path, metrics: list[dict]) -> None:
+    """A run's metrics as CSV, one row per view count, each figure with its :data:`~.metrics.DECIMALS`."""
     cols = ["views", "psnr", "ssim", "distance_error", "fit_psnr", "fit_start_psnr", "eval_seconds"]
     with atomic_write(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=cols, extrasaction="ignore")
         w.writeheader()
         for m in metrics:
-            w.writerow(m)
+            w.writerow({k: fixed(v, DECIMALS.get(k)) for k, v in m.items()})
 
 
 def _json_default(o):

@@ -1106,3 +1106,20 @@ def test_a_dataset_without_any_of_its_images_is_one_line(shared_data, tmp_path):
                                                    "of the dataset's image files exist"), proc.stderr
     assert not (tmp_path / "run").exists()
 
+
+# -- precision of what runs write -------------------------------------------------------------
+
+def test_metrics_csv_prints_each_figure_to_its_decimals(finished_run):
+    import csv
+    import re
+
+    from mitsuba_active.metrics import DECIMALS
+
+    rows = list(csv.DictReader((finished_run / "metrics.csv").open()))
+    assert rows
+    for row in rows:
+        assert re.fullmatch(r"\d+", row.pop("views"))
+        for column, value in row.items():
+            # SSIM needs 11x11 pixels: empty here.
+            assert value == "" or re.fullmatch(rf"-?\d+\.\d{{{DECIMALS[column]}}}", value), (column, value)
+    assert {DECIMALS[c] for c in ("psnr", "ssim", "distance_error", "fit_psnr")} == {4}

@@ -47,7 +47,8 @@ def test_tables_state_the_seed_count_and_mark_cells_with_fewer_seeds():
 
     even = {"cells": [cell("rfe", 3), cell("even", 3)]}
     md, rows = _table(even, ["a"], ["rfe", "even"], "psnr", "PSNR")
-    assert "over 3 seeds" in md and "(3)" not in md and rows[1] == ["rfe", "a", 10, 23.0, 0.1, 3]
+    # The CSV prints each figure to its decimals (metrics.DECIMALS), not to a float's 17 digits.
+    assert "over 3 seeds" in md and "(3)" not in md and rows[1] == ["rfe", "a", 10, "23.0000", "0.1000", 3]
     uneven = {"cells": [cell("rfe", 3), cell("even", 2)]}
     md, _ = _table(uneven, ["a"], ["rfe", "even"], "psnr", "PSNR")
     assert "n per cell" in md and "23.00 ± 0.10 (3)" in md and "22.00 ± 0.10 (2)" in md

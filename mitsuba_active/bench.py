@@ -41,10 +41,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .checks import not_a_file, setting_value
-from .errors import UserError
+from .checks import choice_named, not_a_file, setting_value, unknown_choice
+from .errors import FolderError, UserError
 from .imageio_utils import folder_name, new_entries, remove_new, replaced_folder
-from .metrics import iqm, standard_error
+from .metrics import DECIMALS, fixed, iqm, standard_error
 
 SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture", "two_sided")
 #: The report's folder of plots over all scenes, beside each scene's (no scene may be named so).
@@ -294,12 +294,12 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
     ``author`` (reports only) the scenes are left as they are.
     """
     from .planners import make_planner, planner_label
-    from .planners.base import planner_digest, resolve_reference
+    from .planners.base import REGISTRY, planner_digest, registered_name, resolve_reference
     from .run import RunConfig, field_config
     from .scene import content_hash, load_mesh, load_scene
 
     if profile not in PROFILES:
-        raise UserError(f"unknown profile '{profile}'; use quick or full")
+        raise UserError(unknown_choice("profile", profile, PROFILES))
     unknown = set(scenes or ()) - {sc.name for sc in suite.scenes}
     if unknown:
         raise UserError(f"no scene named {', '.join(sorted(unknown))} in the suite; it has "
@@ -314,7 +314,11 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
     suite_planners = {p.name: p for p in suite.planners}
     chosen = {}
     for name in planners or list(suite_planners):
-        p = suite_planners.get(planner_label(name))
+        p = suite_planners.get(choice_named(planner_label(name), suite_planners))
+        if p is None and ":" not in name and registered_name(name) not in REGISTRY:
+            others = [n for n in sorted(REGISTRY) if n not in suite_planners]
+            raise UserError(f"{unknown_choice('planner', name, [*suite_planners, *others])}, "
+                            "or name a planner of your own as FILE.py:CLASS")
         if p is None:
             ref = resolve_reference(name)
             p = SuitePlanner(planner_label(ref), ref)
@@ -466,12 +470,12 @@ def _refuse_other_runs(jobs: list[Job]) -> None:
             continue
         rec = read_resumable_record(path)
         if job.content_hash is not None and rec.get("content_hash") not in (None, job.content_hash):
-            raise UserError(f"{job.out} holds a run of scene '{job.scene}' made with another version of it (its "
-                            "file or the files it names changed); use another --out, or undo the change")
+            raise FolderError(job.out, f"holds a run of scene '{job.scene}' made with another version of it (its "
+                                       "file or the files it names changed); use another --out, or undo the change")
         # A larger budget is not refused: the runs go on to it.
         changed = conflicting_settings(rec, job.config, compare_scene=job.content_hash is None)
         if changed:
-            raise UserError(other_settings(job.out, changed, "use another --out for this variant of the suite"))
+            raise other_settings(job.out, changed, "use another --out for this variant of the suite")
         if other_planner_code(rec, job.planner_digest):
             suite_dir = Path(job.out).parent.parent.parent
             raise UserError(f"{suite_dir} holds runs made with another version of the planner's code "
@@ -879,7 +883,8 @@ def _table(summary: dict, scenes, planners, metric: str, title: str):
             for v in views:
                 st = stats[(s, p, v)]
                 row.append(f"{_fmt(st)} ({st['n']})" if per_cell and st["iqm"] is not None else _fmt(st))
-                csv_rows.append([p, s, v, st["iqm"], st["se"], st["n"]])
+                csv_rows.append([p, s, v, fixed(st["iqm"], DECIMALS[metric]), fixed(st["se"], DECIMALS[metric]),
+                                 st["n"]])
             for key, found in times.items():
                 if c and (c.get(key) or {}).get("iqm") is not None:
                     found.append(c[key]["iqm"])

@@ -20,7 +20,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from .checks import is_number, is_whole
+from .checks import is_number, is_whole, unknown_choice
 from .errors import UserError
 
 #: Most pixels of a camera's image (4096x4096): one image's rays are one batch.
@@ -416,7 +416,7 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     Returns ``(candidates, heldout)``, two lists of :class:`Camera`.
     """
     if rig not in RIG_KINDS:
-        raise UserError(f"unknown rig '{rig}'; choose one of {', '.join(RIG_KINDS)}")
+        raise UserError(unknown_choice("rig", rig, RIG_KINDS))
     for what, n in (("candidate", n_candidates), ("held-out", n_heldout)):  # image sizes: Camera checks them
         if not is_whole(n) or n < 1:
             raise UserError(f"the number of {what} views must be a whole number >= 1, got {n!r}")

@@ -1,4 +1,4 @@
-"""Type checks of user settings (TOML, JSON and library values alike).
+"""Checks of user settings (TOML, JSON and library values alike): their types, and names of choices.
 
 ``bool`` is an ``int`` in Python, but ``true`` is never a count or a number
 here; a Python ``int`` may be too large for a float.
@@ -6,6 +6,7 @@ here; a Python ``int`` may be too large for a float.
 
 from __future__ import annotations
 
+import difflib
 import math
 import numbers
 import os
@@ -53,3 +54,29 @@ def not_a_file(path, what: str) -> str:
     if os.path.isdir(path):
         return f"{what} {path} is a folder, not a file"
     return f"{what} {path} is not a regular file (a pipe, a socket or a device)"
+
+
+def choice_named(name, choices):
+    """``name`` as ``choices`` spell it when it is one of them in any case
+    (``RFE`` is ``rfe``); any other value as it is."""
+    if not isinstance(name, str) or name in choices:
+        return name
+    same = [c for c in choices if c.casefold() == name.casefold()]
+    return same[0] if len(same) == 1 else name
+
+
+def nearest(name, choices) -> str | None:
+    """The one of ``choices`` nearest to a mistyped ``name`` (in any case), or None when none is near."""
+    if not isinstance(name, str):
+        return None
+    folded = {c.casefold(): c for c in choices}
+    near = difflib.get_close_matches(name.casefold(), list(folded), n=1)
+    return folded[near[0]] if near else None
+
+
+def unknown_choice(what: str, name, choices) -> str:
+    """The message refusing ``name`` as a ``what`` ("planner"): it names the
+    nearest of ``choices`` to a mistyped name, and lists them all."""
+    near = nearest(name, choices)
+    hint = f" (did you mean '{near}'?)" if near else ""
+    return f"unknown {what} {name!r}{hint}; choose one of {', '.join(choices)}"

@@ -25,8 +25,11 @@ with interruptible_imports():  # click and numpy load here, after the package's 
     import click
     from click.core import ParameterSource
 
+    from .bench import PROFILES
+    from .cameras import RIG_KINDS
+    from .checks import nearest
     from .console import mitsuba_log_as_warnings, one_line, show_warning
-    from .errors import UserError
+    from .errors import FolderError, UserError
     from .field.config import DEFAULT_PRESET, FIELD_PRESETS
     from .imageio_utils import folder_name, new_entries, remove_new
     from .scene import DEFAULT_COLOR, UP_AXES, SceneOptions
@@ -45,6 +48,46 @@ def _os_error_line(exc: OSError) -> str:
     name = exc.filename2 or exc.filename
     where = f"{name}: " if name else ""
     return f"{where}{exc.strerror or exc}"
+
+
+#: Where a command keeps the output folder it writes (``ctx.meta``), once its default is filled in.
+_OUT = "mitsuba_active.out"
+
+
+def _output_option() -> tuple[str, Path] | None:
+    """The current command's option that names its output (``--out``, ``-o/--output``) and the path it names."""
+    ctx = click.get_current_context(silent=True)
+    option = next((p for p in ctx.command.params if p.name == "out"), None) if ctx else None
+    path = ctx.meta.get(_OUT, ctx.params.get("out")) if option else None
+    return ("/".join(option.opts), Path(path)) if path is not None else None
+
+
+def _naming_output(paths, around: bool) -> str | None:
+    """``--out runs/x`` when one of ``paths`` is the current command's output
+    (with ``around``, also a path inside it or above it); else None."""
+    output = _output_option()
+    if output is None:
+        return None
+    option, out = output
+    target = Path(os.path.abspath(out))
+    for p in paths:
+        if isinstance(p, (str, os.PathLike)):
+            p = Path(os.path.abspath(p))
+            if p == target or (around and (target in p.parents or p in target.parents)):
+                return f"{option} {out}"
+    return None
+
+
+def _error_line(exc: Exception) -> str:
+    """The line that reports a UserError or an OSError, naming the output's option when it is about the output."""
+    if isinstance(exc, FolderError):
+        named = _naming_output([exc.folder], around=False)
+        return f"{named}: {exc.reason}" if named else str(exc)
+    if isinstance(exc, OSError):
+        line = _os_error_line(exc)
+        named = _naming_output([exc.filename, exc.filename2], around=True)
+        return f"{named}: {line}" if named else line
+    return str(exc)
 
 
 def _load_libraries() -> None:
@@ -97,11 +140,9 @@ def _one_line_errors(fn):
                 with interrupts_deferred():
                     _load_libraries()
                 return fn(*args, **kwargs)
-        except UserError as exc:
-            click.echo(f"mitsuba-active: error: {one_line(str(exc))}", err=True)
-            sys.exit(2)
-        except OSError as exc:  # an output folder that cannot be created or written, a full disk...
-            click.echo(f"mitsuba-active: error: {one_line(_os_error_line(exc))}", err=True)
+        # OSError: an output folder that cannot be created or written, a full disk...
+        except (UserError, OSError) as exc:
+            click.echo(f"mitsuba-active: error: {one_line(_error_line(exc))}", err=True)
             sys.exit(2)
         except (KeyboardInterrupt, RuntimeError) as exc:
             if not _caused_by_interrupt(exc):
@@ -121,7 +162,31 @@ def _one_line_errors(fn):
     return wrapper
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class _Choice(click.Choice):
+    """A choice given in any case (``--rig Sphere``); a mistyped one is answered with the nearest choice."""
+
+    def __init__(self, choices):
+        super().__init__(choices, case_sensitive=False)
+
+    def get_invalid_choice_message(self, value, ctx) -> str:
+        near = nearest(value, self.choices)
+        return super().get_invalid_choice_message(value, ctx) + (f" (Did you mean '{near}'?)" if near else "")
+
+
+class _Command(click.Command):
+    """A command whose summary in ``mitsuba-active --help`` is its docstring's first sentence whole."""
+
+    def get_short_help_str(self, limit: int = 45) -> str:
+        return super().get_short_help_str(limit=1000)  # click cuts it to fit the terminal, with "..."
+
+
+class _Commands(click.Group):
+    """The commands, each a :class:`_Command`."""
+
+    command_class = _Command
+
+
+@click.group(cls=_Commands, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(package_name="mitsuba-active")
 def main():
     """Active view planning of radiance fields with Mitsuba 3 and Dr.Jit."""
@@ -131,9 +196,9 @@ def main():
 @click.argument("mesh", type=click.Path())  # a folder gets the command's own one-line error
 @click.option("-o", "--output", "out", required=True, type=click.Path(),
               help="Scene XML to write; the normalised mesh (PLY) and texture go beside it.")
-@click.option("--up", type=click.Choice(UP_AXES), default=SceneOptions.up, show_default=True,
-              help="The mesh's up axis; auto: the axis its shape rests on a flat base across, else y (with a "
-                   "warning).")
+@click.option("--up", type=_Choice(UP_AXES), default=SceneOptions.up, show_default=True,
+              help="The mesh's up axis; auto: the axis its shape rests on a flat base across, else y (said in "
+                   "a note).")
 @click.option("--color", nargs=3, type=float, default=None,
               help="Diffuse RGB reflectance when the mesh has no texture or vertex colours. "
                    "Default: its materials' colours (OBJ Kd, glTF baseColorFactor), else "
@@ -148,13 +213,17 @@ def main():
               help="Constant environment light; also the background's colour.")
 @click.option("--sun/--no-sun", default=SceneOptions.sun, show_default=True,
               help="A directional sun light from above, which shades the object.")
-@click.option("--point-lights", type=click.IntRange(0, 16), default=0, show_default=True)
+@click.option("--point-lights", type=click.IntRange(0, 16), default=0, show_default=True,
+              help="Point lights spread on a ring above the object.")
 @click.option("--floor", is_flag=True, help="Add a floor under the object.")
 @click.option("--two-sided", is_flag=True,
               help="Reflect on both sides of the surface (else its back is black, as an open mesh shows).")
 @_one_line_errors
 def scene(mesh, out, up, color, texture, no_texture, env_radiance, sun, point_lights, floor, two_sided):
-    """Author a Mitsuba scene XML around MESH (OBJ, PLY, STL, GLB, glTF, OFF)."""
+    """Author a Mitsuba scene XML around a mesh.
+
+    MESH is an OBJ, PLY, STL, GLB, glTF or OFF file.
+    """
     from .scene import authoring_notes, scene_from_mesh
 
     if texture is not None and no_texture:
@@ -169,7 +238,7 @@ def scene(mesh, out, up, color, texture, no_texture, env_radiance, sun, point_li
 
 def _rig_options(fn):
     for opt in reversed([
-        click.option("--rig", type=click.Choice(["auto", "sphere", "hemisphere", "rings", "interior", "xml"]),
+        click.option("--rig", type=_Choice(RIG_KINDS),
                      default="auto", show_default=True,
                      help="Candidate cameras: generated around (or, for rooms, inside) the scene, or the XML's own."),
         click.option("--candidates", "n_candidates", type=int, default=100, show_default=True,
@@ -196,11 +265,14 @@ def _check_rig_options(rig: str) -> None:
 @click.option("-o", "--output", "out", required=True, type=click.Path(file_okay=False), help="Output folder.")
 @_rig_options
 @click.option("--views", type=int, default=None, help="Render only the first N views of the split [all].")
-@click.option("--split", type=click.Choice(["candidates", "heldout"]), default="candidates", show_default=True)
+@click.option("--split", type=_Choice(["candidates", "heldout"]), default="candidates", show_default=True,
+              help="The views to render: the candidates, or the held-out views runs are scored on.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @_one_line_errors
 def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, views, split, quiet):
-    """Render ground-truth RGB and distance of a scene's views into OUT (EXR + PNG).
+    """Render ground-truth RGB and distance of a scene's views into OUT.
+
+    Each view is an EXR (RGB and distance) and PNG previews.
 
     SCENE_XML defaults to the bundled scene.
     """
@@ -305,12 +377,13 @@ def _parse_counts(text: str) -> list[int]:
 @click.option("--initial-views", type=int, default=2, show_default=True, help="Random views before planning.")
 @click.option("--ensemble", type=int, default=2, show_default=True, help="Fields K in the planner's ensemble.")
 @click.option("--batch", type=int, default=1, show_default=True, help="Views chosen per round.")
-@click.option("--seed", type=click.IntRange(0, 2**31 - 1), default=0, show_default=True)
+@click.option("--seed", type=click.IntRange(0, 2**31 - 1), default=0, show_default=True,
+              help="Seeds the initial views, the planner's randomness and every field.")
 @_rig_options
 @click.option("--downscale", type=int, default=None, help="Image downscale of a dataset [to fit --resolution].")
 @click.option("--rays-per-candidate", type=int, default=256, show_default=True,
               help="Sparse rays scored per candidate view.")
-@click.option("--score", "score_form", type=click.Choice(["sum", "log"]), default="sum", show_default=True,
+@click.option("--score", "score_form", type=_Choice(["sum", "log"]), default="sum", show_default=True,
               help="rfe: sum of variances or sum of log-variances.")
 @click.option("--planner-option", "planner_option", multiple=True, metavar="NAME=VALUE",
               help="A planner setting, e.g. fisher's lam=0.1 or probes=2 (repeatable).")
@@ -318,7 +391,7 @@ def _parse_counts(text: str) -> list[int]:
               help="Ensemble training steps per captured view (warm start) [50].")
 @click.option("--eval-views", default="5,10,15,20", show_default=True, help="View counts to evaluate at.")
 @click.option("--eval-steps", type=int, default=None, help="Training steps of each evaluation field [1500].")
-@click.option("--field", "field_preset", type=click.Choice(list(FIELD_PRESETS)), default=DEFAULT_PRESET,
+@click.option("--field", "field_preset", type=_Choice(list(FIELD_PRESETS)), default=DEFAULT_PRESET,
               show_default=True, help="The radiance fields' preset: "
                                       + "; ".join(f"{k}: {p.summary}" for k, p in FIELD_PRESETS.items()) + ".")
 @click.option("--distance-weight", type=float, default=0.0, show_default=True,
@@ -331,7 +404,7 @@ def _parse_counts(text: str) -> list[int]:
 def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig, n_candidates, n_heldout,
          resolution, fov, spp, downscale, rays_per_candidate, score_form, planner_option, steps_per_view, eval_views,
          eval_steps, field_preset, distance_weight, out, quiet):
-    """Choose views of SCENE_PATH with a planner and report reconstruction quality.
+    """Choose views of SCENE_PATH with a planner; score the reconstruction.
 
     SCENE_PATH is a Mitsuba scene XML, a mesh (a scene is authored around
     it with the defaults of `mitsuba-active scene`, in OUT/scene), a
@@ -340,10 +413,12 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     views and held-out renders.
     """
     from .planners import make_planner
+    from .planners.base import registered_name
     from .run import RunConfig, default_out_dir, undone_unless_resumable
     from .scene import MESH_SUFFIXES, authoring_notes
 
     scene_path = str(scene_path or BUNDLED_SCENE)
+    planner = registered_name(planner)  # in any case: --planner RFE is rfe
     given = _given_options()
     _check_rig_options(rig)
     if planner != "rfe" and "score_form" in given:
@@ -376,6 +451,7 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
         click.echo(f"note: --eval-views {', '.join(map(str, dropped))} left out: below the {cfg.initial_views} "
                    f"initial views or above the budget of {cfg.budget}", err=True)
     out = Path(out) if out else default_out_dir(scene_path, planner, seed)
+    click.get_current_context().meta[_OUT] = out
     with undone_unless_resumable(out):
         notes = []
         if Path(scene_path).suffix.lower() in MESH_SUFFIXES:
@@ -399,7 +475,7 @@ def _author_into_run(mesh, out: Path) -> str:
     def same_scene(digest: str) -> None:
         # Authoring is deterministic: the run's own scene comes out the same.
         if (out / "run.json").is_file() and not (target.is_file() and content_hash(target) == digest):
-            raise UserError(f"{out} holds a run of another scene; choose another --out folder")
+            raise FolderError(out, "holds a run of another scene; choose another run folder")
 
     return str(scene_from_mesh(mesh, target, check=same_scene))
 
@@ -462,7 +538,10 @@ def _plan(cfg, out: Path, quiet: bool, given=frozenset(), notes=()) -> dict:
               help="Dataset folder [RUN_DIR/export].")
 @_one_line_errors
 def export(run_dir, out):
-    """Export a run's chosen views as a transforms.json dataset (nerfstudio / instant-ngp)."""
+    """Export a run's chosen views as a transforms.json dataset.
+
+    The dataset reads in nerfstudio and instant-ngp.
+    """
     from .export import export_transforms
 
     click.echo(f"wrote {export_transforms(run_dir, out)}")
@@ -473,13 +552,13 @@ def export(run_dir, out):
 @click.option("--out", "out", type=click.Path(file_okay=False), default=None,
               help="Suite folder [bench/SUITE-PROFILE, plus each --set]; finished runs there are kept and skipped "
                    "(with a larger budget in the suite file, they go on from the views they have).")
-@click.option("--profile", type=click.Choice(["quick", "full"]), default="quick", show_default=True,
+@click.option("--profile", type=_Choice(list(PROFILES)), default="quick", show_default=True,
               help="quick: small images and few steps, one seed; full: paper-like settings, five seeds.")
 @click.option("--workers", type=int, default=1, show_default=True, help="Parallel worker processes.")
 @click.option("--seeds", default=None, help="Comma-separated seeds [the profile's].")
 @click.option("--planners", default=None, help="Comma-separated planners [the suite's].")
 @click.option("--scenes", default=None, help="Comma-separated scene names [all].")
-@click.option("--field", "field_preset", type=click.Choice(list(FIELD_PRESETS)), default=None,
+@click.option("--field", "field_preset", type=_Choice(list(FIELD_PRESETS)), default=None,
               help="The radiance field's preset for every run [the suite's, else the profile's].")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="A run setting over the suite's, for every run (repeatable): e.g. ensemble=4, "
@@ -489,7 +568,10 @@ def export(run_dir, out):
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @_one_line_errors
 def bench(suite, out, profile, workers, seeds, planners, scenes, field_preset, overrides, report_only, quiet):
-    """Run a benchmark SUITE (TOML): scenes x planners x seeds; write tables and plots."""
+    """Run a benchmark SUITE (TOML) of scenes x planners x seeds.
+
+    Writes tables and plots of its finished runs into report/ in the suite folder (--out).
+    """
     from .bench import parse_overrides, run_suite
 
     split = lambda s: [x.strip() for x in s.split(",") if x.strip()] if s else None  # noqa: E731
@@ -508,6 +590,7 @@ def bench(suite, out, profile, workers, seeds, planners, scenes, field_preset, o
         tag = "".join("-" + folder_name(o) for o in overrides)
         out = Path("bench") / f"{Path(suite).stem}-{profile}{tag}"
     out = Path(out)
+    click.get_current_context().meta[_OUT] = out
     summary = run_suite(suite, out, profile, workers, seed_list, split(planners), split(scenes),
                         progress=not quiet, report_only=report_only, overrides=parse_overrides(overrides),
                         log=lambda m: click.echo(f"note: {m}", err=True))

@@ -157,15 +157,17 @@ class DatasetSource:
         train = [_parse_frame(*t) for t in train]
         test = [_parse_frame(*t) for t in test]
         missing = [t[0] for t in train + test if not t[0].is_file()]
-        if missing:
-            warnings.warn(f"{name}: skipped {len(missing)} of {len(train) + len(test)} frames whose image "
-                          f"file is missing (e.g. {missing[0]})", stacklevel=2)
+        n_frames = len(train) + len(test)
         train = [t for t in train if t[0].is_file()]
         test = [t for t in test if t[0].is_file()]
+        # Refused before the warning about skipped frames: one line says it all.
         if not train and not test:
             raise UserError(f"{files[0]}: none of the dataset's image files exist (e.g. {missing[0]})")
         if not train:
             raise UserError(f"{root}: no training frame has an image file")
+        if missing:
+            warnings.warn(f"{name}: skipped {len(missing)} of {n_frames} frames whose image "
+                          f"file is missing (e.g. {missing[0]})", stacklevel=2)
 
         if downscale is None:
             width = _full_size(train[0])[0]

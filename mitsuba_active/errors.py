@@ -1,5 +1,7 @@
 """The exceptions that the command line and the package turn into one-line messages."""
 
+import os
+
 
 class UserError(Exception):
     """Bad input from the user (a file, an option, a budget).
@@ -24,7 +26,20 @@ class TrainingDiverged(UserError):
     longer finite, and training the same way again diverges again."""
 
 
-class FolderInUse(UserError):
+class FolderError(UserError):
+    """An output folder that cannot take what is to be written there (it holds
+    another run, say): the ``folder`` and the ``reason`` apart, so that the
+    command line names the folder by its option (``--out runs/x: ...``)."""
+
+    def __init__(self, folder, reason: str):
+        self.folder, self.reason = os.fspath(folder), reason
+        super().__init__(f"{self.folder}: {reason}")
+
+    def __reduce__(self):  # bench's worker processes send it back pickled
+        return type(self), (self.folder, self.reason)
+
+
+class FolderInUse(FolderError):
     """A run folder that another run is writing (in this process or another):
     raised before anything in it is touched, so nothing of the other run's is undone."""
 

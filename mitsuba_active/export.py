@@ -19,7 +19,7 @@ from pathlib import Path
 
 from .cameras import Camera
 from .datasets import mitsuba_to_opengl
-from .errors import UserError, first_line
+from .errors import FolderError, UserError, first_line
 from .imageio_utils import atomic_write, new_entries, remove_new
 from .interrupts import interrupts_deferred
 from .run import read_record
@@ -143,8 +143,8 @@ def _earlier_export(out: Path) -> set[str]:
     for path in sorted(out.glob("transforms*.json")) if out.is_dir() else []:
         frames = _exported_frames(path) if path.name == "transforms.json" else None
         if frames is None:
-            raise UserError(f"{out} holds a dataset that is not an earlier export ({path.name}); "
-                            "export into another folder (-o)")
+            raise FolderError(out, f"holds a dataset that is not an earlier export ({path.name}); "
+                                   "export into another folder")
         names = {f.get(key) for f in frames for key in ("file_path", "distance_file_path")}
         earlier = {n for n in names if isinstance(n, str) and _WRITTEN.fullmatch(n)}
     return earlier

@@ -99,8 +99,8 @@ def folder_lock(path: Path):
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            raise FolderInUse(f"{path} is in use by another run (a plan or bench writing it now); wait for that "
-                              "one to end, or choose another folder") from None
+            raise FolderInUse(path, "in use by another run (a plan or bench writing it now); wait for that one to "
+                                    "end, or choose another folder") from None
         yield
     finally:
         os.close(fd)  # releases the lock

@@ -30,14 +30,14 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import RIG_KINDS, camera_rays, snapped_up
-from .checks import is_number, is_whole
+from .checks import choice_named, is_number, is_whole, unknown_choice
 from .env import ActiveViewEnv, SceneSource
-from .errors import FolderInUse, TrainingDiverged, UserError
+from .errors import FolderError, FolderInUse, TrainingDiverged, UserError
 from .field.config import DEFAULT_PRESET, FIELD_PRESETS, LEGACY_PRESET
 from .groundtruth import MAX_SPP, View
 from .imageio_utils import (atomic_write, colorize, folder_lock, new_entries, remove_new, srgb_to_linear, write_exr,
                             write_png)
-from .metrics import distance_error, psnr, ssim
+from .metrics import DECIMALS, distance_error, fixed, psnr, ssim
 from .planners import PlanningState, make_planner
 from .planners.base import (is_planner_file, planner_digest, planner_folder, planner_label, planner_rng,
                              resolve_reference)
@@ -103,6 +103,8 @@ class RunConfig:
             self.scene = os.fspath(self.scene)
         if isinstance(self.planner, str):  # a planner file is the same file from any folder
             self.planner = resolve_reference(self.planner)
+        # Names of choices in any case, as they are spelt in run.json and folder names.
+        self.rig, self.field_preset = choice_named(self.rig, RIG_KINDS), choice_named(self.field_preset, FIELD_PRESETS)
         # numpy scalars (a seed from np.arange) as Python numbers: gymnasium takes Python ints only.
         for name in self.WHOLE + self.NUMBERS + ("downscale",):
             value = getattr(self, name)
@@ -133,7 +135,7 @@ class RunConfig:
         if not isinstance(self.rig, str):
             raise UserError(f"rig must be a name, got {self.rig!r}")
         if not isinstance(self.field_preset, str) or self.field_preset not in FIELD_PRESETS:
-            raise UserError(f"unknown field preset {self.field_preset!r}; choose one of {', '.join(FIELD_PRESETS)}")
+            raise UserError(unknown_choice("field preset", self.field_preset, FIELD_PRESETS))
 
     def validate(self, n_candidates: int | None = None) -> None:
         """UserError unless the settings make a run (types, ranges, the budget against ``n_candidates``)."""
@@ -151,7 +153,7 @@ class RunConfig:
             (self.resolution > 0, f"image resolution must be positive, got {self.resolution}"),
             (0 < self.spp <= MAX_SPP, f"samples per pixel must be in [1, {MAX_SPP}], got {self.spp}"),
             (self.fov is None or 0 < self.fov < 180, f"field of view must be in (0, 180) degrees, got {self.fov}"),
-            (self.rig in RIG_KINDS, f"unknown rig '{self.rig}'; choose one of {', '.join(RIG_KINDS)}"),
+            (self.rig in RIG_KINDS, unknown_choice("rig", self.rig, RIG_KINDS)),
             (self.candidates >= 1, f"at least one candidate view is needed, got {self.candidates}"),
             (self.heldout >= 1, f"at least one held-out view is needed to evaluate on, got {self.heldout}"),
             (math.isfinite(self.distance_weight) and self.distance_weight >= 0,
@@ -429,11 +431,11 @@ def undone_unless_resumable(out: Path):
         raise
 
 
-def other_settings(folder, changed: list[str], advice: str) -> str:
-    """The message refusing ``folder``, whose run has other settings (``changed``,
+def other_settings(folder, changed: list[str], advice: str) -> FolderError:
+    """The error refusing ``folder``, whose run has other settings (``changed``,
     from :func:`config_differences`; the first three are named)."""
     more = f" and {len(changed) - 3} more" if len(changed) > 3 else ""
-    return f"{folder} holds a run with other settings ({'; '.join(changed[:3])}{more}); {advice}"
+    return FolderError(folder, f"holds a run with other settings ({'; '.join(changed[:3])}{more}); {advice}")
 
 
 def conflicting_settings(rec: dict, current: dict, compare_scene: bool = True) -> list[str]:
@@ -570,8 +572,8 @@ def evaluate(source, views: list[View], cfg: RunConfig, progress: bool = False) 
         d_list.append(distance_error(pred["distance"], gt.distance, gt.mask))
     # SSIM needs 11x11 pixels and the distance error needs hits: without them, None (null in run.json).
     metrics = {"views": len(views), "psnr": float(np.mean(p_list)), "ssim": _mean_or_none(s_list),
-               "distance_error": _mean_or_none(d_list), "fit_psnr": round(fit_psnr, 2),
-               "fit_start_psnr": round(start_psnr, 2), "eval_seconds": round(time.perf_counter() - t0, 3)}
+               "distance_error": _mean_or_none(d_list), "fit_psnr": fit_psnr, "fit_start_psnr": start_psnr,
+               "eval_seconds": round(time.perf_counter() - t0, 3)}
     return metrics, preds
 
 
@@ -689,23 +691,23 @@ class Run:
             by_content = rec.get("content_hash") is not None and self._content_hash() is not None
             changed = conflicting_settings(rec, self._config_dict(), compare_scene=not by_content)
             if changed:
-                raise UserError(other_settings(self.out, changed, "choose another run folder (--out)"))
+                raise other_settings(self.out, changed, "choose another run folder")
             if by_content and rec["content_hash"] != self._content_hash():
-                raise UserError(f"{self.out} holds a run of a scene or dataset that has changed since; "
-                                "choose another run folder (--out)")
+                raise FolderError(self.out, "holds a run of a scene or dataset that has changed since; choose "
+                                            "another run folder")
             if (rec.get("candidates") != [c.to_dict() for c in self.source.candidates]
                     or rec.get("heldout") != [c.to_dict() for c in self.source.heldout]):
                 made_with = rec.get("versions", {}).get("mitsuba_active")
                 now = self.versions["mitsuba_active"]
                 why = (f" (it was made with mitsuba-active {made_with}, whose rigs place cameras otherwise than "
                        f"{now}'s)" if made_with not in (None, now) else "")
-                raise UserError(f"{self.out} holds a run whose candidate or held-out cameras are not the view "
-                                f"source's{why}; choose another run folder (--out)")
+                raise FolderError(self.out, f"holds a run whose candidate or held-out cameras are not the view "
+                                            f"source's{why}; choose another run folder")
             captured = rec["captured"]
             if other_planner_code(rec, self.planner_digest):
-                raise UserError(f"{self.out} holds a run made with another version of the planner's code "
-                                f"({planner_label(self.cfg.planner)}); choose another run folder (--out), "
-                                "or remove this one")
+                raise FolderError(self.out, f"holds a run made with another version of the planner's code "
+                                            f"({planner_label(self.cfg.planner)}); choose another run folder, "
+                                            "or remove this one")
             if rec.get("planner_digest") != self.planner_digest:
                 self.log(f"note: the planner's code changed before it chose a view: {self.out} starts over")
                 return self._start()
@@ -968,12 +970,13 @@ class Run:
 
 
 def write_metrics_csv(path, metrics: list[dict]) -> None:
+    """A run's metrics as CSV, one row per view count, each figure with its :data:`~.metrics.DECIMALS`."""
     cols = ["views", "psnr", "ssim", "distance_error", "fit_psnr", "fit_start_psnr", "eval_seconds"]
     with atomic_write(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=cols, extrasaction="ignore")
         w.writeheader()
         for m in metrics:
-            w.writerow(m)
+            w.writerow({k: fixed(v, DECIMALS.get(k)) for k, v in m.items()})
 
 
 def _json_default(o):

@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -413,7 +414,7 @@ def test_a_run_folder_is_never_given_another_scene(tmp_path):
             assert code == 0 and "already complete" in text, text
         else:  # another mesh of the same name: refused, nothing overwritten
             code, text = run_cli("plan", mesh, *tiny)
-            assert_one_line_error(code, text, "holds a run of another scene")
+            assert_one_line_error(code, text, f"--out {out}: holds a run of another scene")
         assert files() == before
 
 
@@ -826,8 +827,8 @@ def test_export_refuses_a_folder_that_holds_another_dataset(finished_run, tmp_pa
         original = json.dumps({"frames": [{"file_path": "images/r_0.png", "transform_matrix": np.eye(4).tolist()}]})
         (dataset / name).write_text(original)
         code, text = run_cli("export", finished_run, "-o", dataset)
-        assert_one_line_error(code, text, f"holds a dataset that is not an earlier export ({name}); export into "
-                                          "another folder (-o)")
+        assert_one_line_error(code, text, f"-o/--output {dataset}: holds a dataset that is not an earlier export "
+                                          f"({name}); export into another folder")
         assert (dataset / name).read_text() == original and sorted(p.name for p in dataset.iterdir()) == [
             "images", name]
     for _ in range(2):  # again over the first
@@ -867,7 +868,7 @@ def test_a_run_folder_in_use_is_refused_and_left_alone(finished_run, spot_xml, t
     try:
         fcntl.flock(fd, fcntl.LOCK_EX)
         code, text = run_cli("plan", spot_xml, "--out", out, *TINY_PLAN)
-        assert_one_line_error(code, text, f"{out} is in use by another run")
+        assert_one_line_error(code, text, f"--out {out}: in use by another run")
         assert sorted(p.name for p in out.iterdir()) == before
     finally:
         os.close(fd)
@@ -1024,3 +1025,101 @@ def test_a_write_that_fails_names_the_output(tmp_path):
             tmp.write_bytes(b"half")
             raise OSError(errno.ENOSPC, "No space left on device")
     assert err.value.filename == str(tmp_path / "view.png") and list(tmp_path.iterdir()) == []
+
+
+# -- the command line's own text ---------------------------------------------------------
+
+def test_every_option_of_every_command_has_help():
+    import click
+
+    ctx = click.Context(main)
+    missing = [f"{name} {'/'.join(p.opts)}" for name, command in [("mitsuba-active", main), *main.commands.items()]
+               for p in command.get_params(ctx) if isinstance(p, click.Option) and not p.hidden and not p.help]
+    assert not missing, missing
+
+
+def test_command_summaries_read_whole_at_any_width():
+    for width in (80, 40):
+        result = CliRunner().invoke(main, ["--help"], terminal_width=width)
+        listing = result.output.partition("Commands:")[2]
+        assert result.exit_code == 0 and listing and "..." not in listing, result.output
+        text = " ".join(listing.split())
+        for command in main.commands.values():
+            first = " ".join(command.help.split("\n\n")[0].split())
+            assert first in text, (first, result.output)
+
+
+# -- names of planners and other choices ----------------------------------------------------
+
+def test_a_planner_is_named_in_any_case(spot_xml, tmp_path, monkeypatch):
+    import json
+
+    monkeypatch.chdir(tmp_path)
+    code, text = run_cli("plan", spot_xml, *[a for a in TINY_PLAN if a not in ("--planner", "even")],
+                         "--planner", "RFE", "--score", "log", "--rig", "Sphere", "--field", "FAST")
+    assert code == 0, text
+    config = json.loads((tmp_path / "runs" / "spot-rfe-seed0" / "run.json").read_text())["config"]
+    assert (config["planner"], config["rig"], config["field_preset"]) == ("rfe", "sphere", "fast")
+
+
+def test_a_mistyped_planner_is_answered_with_the_nearest_name(spot_xml, out):
+    code, text = run_cli("plan", spot_xml, "--out", out, "--planner", "rfr")
+    assert_one_line_error(code, text, "unknown planner 'rfr' (did you mean 'rfe'?); choose one of coverage, even")
+    assert not out.exists()
+
+
+def test_a_mistyped_choice_is_answered_with_the_nearest(spot_xml, out):
+    result = CliRunner().invoke(main, ["plan", str(spot_xml), "--out", str(out), "--rig", "spere"])
+    assert result.exit_code == 2 and "(Did you mean 'sphere'?)" in result.output, result.output
+
+
+# -- errors about the output folder name its option ------------------------------------------
+
+def test_errors_about_the_out_folder_name_it(finished_run, spot_xml, tmp_path, monkeypatch):
+    import shutil
+
+    blocker = tmp_path / "afile"
+    blocker.write_text("")
+    code, text = run_cli("plan", spot_xml, "--out", blocker / "run", *TINY_PLAN)
+    assert_one_line_error(code, text, f"--out {blocker / 'run'}: {blocker} is a file, where a folder is needed")
+    code, text = run_cli("plan", spot_xml, "--out", finished_run, *TINY_PLAN, "--seed", "3")
+    assert_one_line_error(code, text, f"--out {finished_run}: holds a run with other settings (seed: 0 -> 3); "
+                                      "choose another run folder")
+    # The default folder too: --out is where to name another.
+    monkeypatch.chdir(tmp_path)
+    shutil.copytree(finished_run, tmp_path / "runs" / "spot-even-seed3")
+    code, text = run_cli("plan", spot_xml, *TINY_PLAN, "--seed", "3")
+    assert_one_line_error(code, text, f"--out {Path('runs') / 'spot-even-seed3'}: holds a run with other settings "
+                                      "(seed: 0 -> 3)")
+
+
+def test_a_dataset_without_any_of_its_images_is_one_line(shared_data, tmp_path):
+    import shutil
+
+    shutil.copy(shared_data / "datasets" / "nerf_synthetic_mic" / "transforms_train.json",
+                tmp_path / "transforms.json")
+    proc = subprocess.run([sys.executable, "-m", "mitsuba_active", "plan", str(tmp_path / "transforms.json"),
+                           "--out", str(tmp_path / "run"), "--quiet"], capture_output=True, text=True)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"mitsuba-active: error: {tmp_path / 'transforms.json'}: none "
+                                                   "of the dataset's image files exist"), proc.stderr
+    assert not (tmp_path / "run").exists()
+
+
+# -- precision of what runs write -------------------------------------------------------------
+
+def test_metrics_csv_prints_each_figure_to_its_decimals(finished_run):
+    import csv
+    import re
+
+    from mitsuba_active.metrics import DECIMALS
+
+    rows = list(csv.DictReader((finished_run / "metrics.csv").open()))
+    assert rows
+    for row in rows:
+        assert re.fullmatch(r"\d+", row.pop("views"))
+        for column, value in row.items():
+            # SSIM needs 11x11 pixels: empty here.
+            assert value == "" or re.fullmatch(rf"-?\d+\.\d{{{DECIMALS[column]}}}", value), (column, value)
+    assert {DECIMALS[c] for c in ("psnr", "ssim", "distance_error", "fit_psnr")} == {4}

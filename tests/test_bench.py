@@ -47,7 +47,8 @@ def test_tables_state_the_seed_count_and_mark_cells_with_fewer_seeds():
 
     even = {"cells": [cell("rfe", 3), cell("even", 3)]}
     md, rows = _table(even, ["a"], ["rfe", "even"], "psnr", "PSNR")
-    assert "over 3 seeds" in md and "(3)" not in md and rows[1] == ["rfe", "a", 10, 23.0, 0.1, 3]
+    # The CSV prints each figure to its decimals (metrics.DECIMALS), not to a float's 17 digits.
+    assert "over 3 seeds" in md and "(3)" not in md and rows[1] == ["rfe", "a", 10, "23.0000", "0.1000", 3]
     uneven = {"cells": [cell("rfe", 3), cell("even", 2)]}
     md, _ = _table(uneven, ["a"], ["rfe", "even"], "psnr", "PSNR")
     assert "n per cell" in md and "23.00 ± 0.10 (3)" in md and "22.00 ± 0.10 (2)" in md
@@ -371,11 +372,11 @@ def test_a_suite_folder_with_stale_or_damaged_runs_is_refused_before_anything_ru
 
     xml = tmp_path / "simple" / "scene.xml"
     for report_only in (True, False):
-        with pytest.raises(UserError, match="even-seed0 holds a run with other settings"):
+        with pytest.raises(UserError, match="even-seed0: holds a run with other settings"):
             run_suite(tiny_suite, out, "quick", planners=["even"], seeds=[1, 0], progress=False,
                       report_only=report_only, overrides=parse_overrides(["eval_steps=25"]))
         xml.write_text(xml.read_text().replace("0.9 0.9 0.0", "0.9 0.5 0.0"))
-        with pytest.raises(UserError, match="simple/even-seed0 holds a run of scene 'simple' made with another"):
+        with pytest.raises(UserError, match="simple/even-seed0: holds a run of scene 'simple' made with another"):
             run_suite(tiny_suite, out, "quick", planners=["even"], seeds=[1, 0], progress=False,
                       report_only=report_only)
         shutil.copy(shared_data / "mitsuba/simple/scene.xml", xml)
@@ -794,6 +795,21 @@ def test_a_suite_compares_variants_of_one_planner(tiny_suite, tmp_path):
                   overrides={"planner_options": {"form": "sum"}})
     assert len(plan_jobs(suite, tmp_path / "o2", "quick", planners=["rfe-log"], author=False,
                          overrides={"planner_options": {"form": "log"}})) == 2
+
+
+def test_suite_planners_are_named_in_any_case(tiny_suite, tmp_path):
+    variant = '{ name = "rfe-log", planner = "Rfe", options = { form = "log" } }'
+    text = tiny_suite.read_text()
+    tiny_suite.write_text(text.replace('planners = ["even", "rfe"]', f'planners = ["EVEN", {variant}]'))
+    suite = load_suite(tiny_suite)
+    assert [(p.name, p.ref) for p in suite.planners] == [("even", "even"), ("rfe-log", "rfe")]
+    jobs = plan_jobs(suite, tmp_path / "o", "quick", planners=["RFE-LOG", "Random"], author=False)
+    assert {j.planner for j in jobs} == {"rfe-log", "random"}
+    with pytest.raises(UserError, match=re.escape("unknown planner 'rfe-lgo' (did you mean 'rfe-log'?)")):
+        plan_jobs(suite, tmp_path / "o", "quick", planners=["rfe-lgo"], author=False)
+    tiny_suite.write_text(tiny_suite.read_text().replace('"EVEN"', '"evn"'))
+    with pytest.raises(UserError, match=re.escape("unknown planner 'evn' (did you mean 'even'?)")):
+        load_suite(tiny_suite)
 
 
 @pytest.mark.parametrize("entry,message", [

@@ -16,6 +16,10 @@ def test_registry_and_unknown_names():
     assert set(names()) == {"random", "even", "rfe", "fisher", "coverage", "variational"}
     with pytest.raises(UserError, match="unknown planner"):
         make_planner("oracle")
+    # Names in any case; a mistyped one is answered with the nearest.
+    assert make_planner("RFE").name == "rfe" and make_planner("Even").name == "even"
+    with pytest.raises(UserError, match=r"unknown planner 'rfr' \(did you mean 'rfe'\?\)"):
+        make_planner("rfr")
     with pytest.raises(UserError):
         make_planner("rfe", form="median")
 
@@ -298,7 +302,9 @@ def test_registering_a_planner_by_name():
     with pytest.raises(UserError, match="give Nameless a name"):
         register(type("Nameless", (Planner,), {}))
     assert "planner" not in REGISTRY
-    for name, message in (("rfe", "one of mitsuba-active's planners"), ("a:b", "without ':'")):
+    # Names are looked up in any case: one that differs from another only in case is ambiguous.
+    for name, message in (("rfe", "one of mitsuba-active's planners"), ("a:b", "without ':'"),
+                          ("RFE", r"'RFE' differs from the name of the planner RFEPlanner \('rfe'\) only in case")):
         with pytest.raises(UserError, match=message):
             register(type("Other", (Mine,), {"name": name}))
     assert REGISTRY["rfe"].__name__ == "RFEPlanner"

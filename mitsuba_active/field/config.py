@@ -10,6 +10,8 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+from ..checks import unknown_choice
+
 
 #: Most grid levels, cells per axis of the finest level, and samples (rays x
 #: samples per ray) in one training or render batch of one member.
@@ -265,7 +267,7 @@ class FieldConfig:
         from ..errors import UserError
 
         if name not in FIELD_PRESETS:
-            raise UserError(f"unknown field preset {name!r}; choose one of {', '.join(FIELD_PRESETS)}")
+            raise UserError(unknown_choice("field preset", name, FIELD_PRESETS))
         return cls(**{**FIELD_PRESETS[name].config_options(width, planner), **options})
 
     @classmethod

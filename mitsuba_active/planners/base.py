@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..checks import is_whole, not_a_file
+from ..checks import choice_named, is_whole, not_a_file, unknown_choice
 from ..errors import UserError
 from ..imageio_utils import folder_name
 
@@ -204,6 +204,11 @@ def register(cls):
         raise UserError(f"a registered planner's name is a word without ':', got {cls.name!r}")
     if cls.name == Planner.name:
         raise UserError(f"give {cls.__name__} a name to be registered by (a class attribute: name = \"...\")")
+    # Names are looked up in any case: one that differs only in case would be ambiguous.
+    twin = next((k for k in REGISTRY if k.casefold() == cls.name.casefold() and k != cls.name), None)
+    if twin is not None:
+        raise UserError(f"'{cls.name}' differs from the name of the planner {REGISTRY[twin].__qualname__} "
+                        f"('{twin}') only in case; give {cls.__name__} another name")
     taken = REGISTRY.get(cls.name)
     if taken is not None and taken.__module__.startswith(__name__.rpartition(".")[0] + ".") and taken is not cls:
         raise UserError(f"'{cls.name}' is the name of one of mitsuba-active's planners; "
@@ -228,19 +233,26 @@ def _is_file(where: str | None) -> bool:
     return where is not None and where.endswith(".py")
 
 
+def registered_name(name):
+    """A registered planner's name as it was registered, given in any case
+    (``RFE`` is ``rfe``); any other name as it is."""
+    return name if not isinstance(name, str) or ":" in name else choice_named(name, REGISTRY)
+
+
 def resolve_reference(name: str, folder=".") -> str:
     """A planner name with the file of a ``FILE.py:CLASS`` reference made
     absolute (relative to ``folder``), so that it names the same file from
-    anywhere; registered names and ``MODULE:CLASS`` references are returned as they are."""
+    anywhere; registered names as registered (:func:`registered_name`), and
+    ``MODULE:CLASS`` references as they are."""
     where, cls = _parse(name)
-    return f"{(Path(folder) / where).resolve()}:{cls}" if _is_file(where) else name
+    return f"{(Path(folder) / where).resolve()}:{cls}" if _is_file(where) else registered_name(name)
 
 
 def planner_label(name: str) -> str:
     """A short name of a planner for tables, plots and messages: a registered
-    name as it is, ``FILE.py:CLASS`` as ``file.py:CLASS`` (without its folder)."""
+    name as registered, ``FILE.py:CLASS`` as ``file.py:CLASS`` (without its folder)."""
     where, cls = _parse(name)
-    return f"{Path(where).name}:{cls}" if _is_file(where) else name
+    return f"{Path(where).name}:{cls}" if _is_file(where) else registered_name(name)
 
 
 def planner_folder(name: str) -> str:
@@ -329,10 +341,10 @@ def planner_class(name: str) -> type:
         raise UserError(f"a planner is named by a string (a registered name or FILE.py:CLASS), got {name!r}{hint}")
     where, cls_name = _parse(name)
     if where is None:
-        if name not in REGISTRY:
-            raise UserError(f"unknown planner '{name}'; choose one of {', '.join(sorted(REGISTRY))}, "
+        if registered_name(name) not in REGISTRY:
+            raise UserError(f"{unknown_choice('planner', name, sorted(REGISTRY))}, "
                             "or name a planner of your own as FILE.py:CLASS")
-        return REGISTRY[name]
+        return REGISTRY[registered_name(name)]
     module = _load_file(str(Path(where).resolve())) if _is_file(where) else _load_module(where)
     cls = getattr(module, cls_name, None)
     if cls is None:

@@ -23,7 +23,7 @@ from mitsuba_active.env import ActiveViewEnv, SceneSource
 from mitsuba_active.field import Ensemble, FieldConfig
 from mitsuba_active.metrics import psnr
 from mitsuba_active.planners import PlanningState, make_planner, planner_rng
-from mitsuba_active.run import PLANNER_INIT_SCALE, predict_view, sparse_candidate_rays, train_on
+from mitsuba_active.training import PLANNER_INIT_SCALE, predict_view, sparse_candidate_rays, train_on
 
 
 def scene_dict() -> dict:

@@ -566,7 +566,7 @@ class Run:
         self.planner_digest = planner_digest(cfg.planner)  # of the code just loaded
         self.planner.check_ensemble_size(cfg.ensemble)
         source_field_config(source, cfg)  # field options are checked before anything is written
-        self.env = ActiveViewEnv(source, cfg.budget)
+        self.env = ActiveViewEnv(source, cfg.budget, allow_repeats=True)  # the random planner repeats views
         self.rng = planner_rng(cfg.seed)
         self.record = None
         self.ensemble = None

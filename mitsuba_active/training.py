@@ -1,7 +1,8 @@
 """Fields trained on captured views: their rays, training, and scores on held-out views.
 
 The pieces a run's acquisition loop and evaluation protocol
-(:mod:`mitsuba_active.run`) train and score fields with.
+(:mod:`mitsuba_active.run`) and the environment's rewards
+(:mod:`mitsuba_active.rewards`) train and score fields with.
 """
 
 from __future__ import annotations

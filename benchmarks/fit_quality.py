@@ -50,7 +50,7 @@ from mitsuba_active.errors import UserError  # noqa: E402
 from mitsuba_active.field import Ensemble, FieldConfig  # noqa: E402
 from mitsuba_active.field.config import FIELD_PRESETS  # noqa: E402
 from mitsuba_active.groundtruth import GroundTruth  # noqa: E402
-from mitsuba_active.run import train_on, view_rays  # noqa: E402
+from mitsuba_active.training import train_on, view_rays  # noqa: E402
 from mitsuba_active.scene import load_scene, scene_from_mesh  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -23,7 +23,7 @@ from mitsuba_active.env import ActiveViewEnv, SceneSource
 from mitsuba_active.field import Ensemble, FieldConfig
 from mitsuba_active.metrics import psnr
 from mitsuba_active.planners import PlanningState, make_planner, planner_rng
-from mitsuba_active.run import PLANNER_INIT_SCALE, predict_view, sparse_candidate_rays, train_on
+from mitsuba_active.training import PLANNER_INIT_SCALE, predict_view, sparse_candidate_rays, train_on
 
 
 def scene_dict() -> dict:
@@ -61,7 +61,7 @@ def main():
     field = dict(batch_rays=256, n_samples=16) if tiny else {}
     steps_per_view, eval_steps = (10, 30) if tiny else (60, 1500)
 
-    env = ActiveViewEnv(source, budget=budget)
+    env = ActiveViewEnv(source, budget=budget, allow_repeats=True)  # the random planner repeats views
     obs, info = env.reset(seed=args.seed, options={"initial_views": 2})
     planner = make_planner(args.planner)
     # The planner's own random stream: not the one that drew the initial views.

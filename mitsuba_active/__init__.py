@@ -9,15 +9,22 @@ message names the fix; uncaught, it ends the program with that one line.
 Ctrl-C during the import is held back until Mitsuba and Dr.Jit have loaded
 (an interrupted extension import fails in unrelated ways), then raised;
 uncaught, it ends the program with "mitsuba-active: interrupted".
+The import also registers the gymnasium environment :data:`ENV_ID`
+(made by :func:`mitsuba_active.env.make_env`).
 """
 
 import sys
+
+import gymnasium
 
 from .errors import SetupError, UserError
 from .interrupts import interruptible_imports
 from .variant import set_variant
 
 __version__ = "0.2.0"
+
+#: The environment's gymnasium id: ``gymnasium.make(ENV_ID, scene=..., ...)``.
+ENV_ID = "mitsuba_active/ActiveView-v0"
 
 
 def _one_line_setup_error(exc_type, exc, tb, _previous=sys.excepthook):
@@ -44,4 +51,7 @@ except UserError as exc:
     sys.excepthook = _one_line_setup_error
     raise SetupError(str(exc)) from None
 
-__all__ = ["SetupError", "UserError", "set_variant", "__version__"]
+if ENV_ID not in gymnasium.registry:  # a reloaded package keeps its registration
+    gymnasium.register(ENV_ID, entry_point="mitsuba_active.env:make_env")
+
+__all__ = ["ENV_ID", "SetupError", "UserError", "set_variant", "__version__"]

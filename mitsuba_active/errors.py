@@ -39,6 +39,11 @@ class FolderError(UserError):
         return type(self), (self.folder, self.reason)
 
 
+class RepeatedView(UserError, ValueError):
+    """A step to a candidate that the episode has captured already, in an
+    environment that does not allow repeats (its ``action_mask`` says which)."""
+
+
 class FolderInUse(FolderError):
     """A run folder that another run is writing (in this process or another):
     raised before anything in it is touched, so nothing of the other run's is undone."""

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import RIG_KINDS, camera_rays, snapped_up
+from .cameras import RIG_KINDS, snapped_up
 from .checks import choice_named, is_number, is_whole, unknown_choice
 from .env import ActiveViewEnv, SceneSource
 from .errors import FolderError, FolderInUse, TrainingDiverged, UserError
@@ -37,15 +37,14 @@ from .field.config import DEFAULT_PRESET, FIELD_PRESETS, LEGACY_PRESET
 from .groundtruth import MAX_SPP, View
 from .imageio_utils import (atomic_write, colorize, folder_lock, new_entries, remove_new, srgb_to_linear, write_exr,
                             write_png)
-from .metrics import DECIMALS, distance_error, fixed, psnr, ssim
+from .metrics import DECIMALS, fixed
 from .planners import PlanningState, make_planner
 from .planners.base import (is_planner_file, planner_digest, planner_folder, planner_label, planner_rng,
                              resolve_reference)
+from .training import (MAX_CANDIDATE_RAYS, PLANNER_INIT_SCALE, has_distances, predict_view, score_views,
+                       sparse_candidate_rays, train_on)
 
 RUN_FORMAT = 1
-#: Most sparse rays scored per candidate view (images have at most 4096x4096
-#: pixels; a planner scores a sample of them).
-MAX_CANDIDATE_RAYS = 65536
 
 
 @dataclass
@@ -194,45 +193,6 @@ class RunConfig:
         counts = sorted({int(v) for v in self.eval_views if 0 < int(v) <= self.budget} | {self.budget})
         return [c for c in counts if c >= max(self.initial_views, 1)]
 
-
-# ---------------------------------------------------------------------------
-# Rays of views
-# ---------------------------------------------------------------------------
-
-def view_rays(views: list[View]) -> dict:
-    """Flat training rays of captured views: origins, directions, rgb (M,3); distance, hit, empty (M,);
-    the background colour their empty pixels show, or None."""
-    parts = [camera_rays(v.camera) for v in views]
-    return {
-        "origins": np.concatenate([o for o, _ in parts]),
-        "directions": np.concatenate([d for _, d in parts]),
-        "rgb": np.concatenate([v.rgb.reshape(-1, 3) for v in views]).astype(np.float32),
-        "distance": np.concatenate([v.distance.reshape(-1) for v in views]).astype(np.float32),
-        "hit": np.concatenate([v.mask.reshape(-1) for v in views]),
-        "empty": np.concatenate([v.empty.reshape(-1) for v in views]),
-        # The colour the empty pixels show, where the views know it (all alike; else None).
-        "background": views[0].background if len({v.background for v in views}) == 1 else None,
-    }
-
-
-def sparse_candidate_rays(candidates, n_rays: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """A fixed random subset of R pixel rays per candidate: origins and directions, (C, R, 3) each."""
-    if not is_whole(n_rays) or not 0 < n_rays <= MAX_CANDIDATE_RAYS:
-        raise UserError(f"rays per candidate must be a whole number in [1, {MAX_CANDIDATE_RAYS}], got {n_rays!r}")
-    rng = np.random.default_rng(seed)
-    o_all, d_all = [], []
-    for cam in candidates:
-        o, d = camera_rays(cam)
-        idx = rng.choice(len(o), size=n_rays, replace=n_rays > len(o))
-        o_all.append(o[idx])
-        d_all.append(d[idx])
-    return np.stack(o_all), np.stack(d_all)
-
-
-#: Initial feature spread of the planner's ensemble. Members differ only by
-#: their initialisation, and where no training ray reaches, that is all they
-#: have: a visible spread is what makes them disagree about unobserved space.
-PLANNER_INIT_SCALE = 2.0
 
 #: Name of the planner's ensemble file in a run folder, after the views it was trained on.
 ENSEMBLE_FILE = re.compile(r"ensemble_\d{3,}\.npz")
@@ -498,11 +458,6 @@ def field_config(cfg: RunConfig, planner: bool = True, width: int | None = None)
     return FieldConfig(**{**base, **cfg.field})
 
 
-def has_distances(source) -> bool:
-    """Whether a view source's views carry distances (a rendered scene's do; a dataset's need depth maps)."""
-    return bool(getattr(source, "has_distance", True))
-
-
 def source_field_config(source, cfg: RunConfig, planner: bool = True):
     """:func:`field_config` for the source's images, also UserError when the source cannot train such a field."""
     config = field_config(cfg, planner, width=source.candidates[0].width)
@@ -525,30 +480,6 @@ def make_ensemble(source, cfg: RunConfig, n_members: int, seed: int, planner: bo
     return make_field(source.bbox_min, source.bbox_max, n_members=n_members, config=config, seed=seed)
 
 
-def train_on(ens, views: list[View], steps: int, progress: bool = False, reset_occupancy: bool = True) -> np.ndarray:
-    """Set the rays of ``views`` on ``ens`` and train it ``steps`` steps; returns the (steps,) losses.
-
-    Without views there is nothing to set: 0 steps do nothing, more are a UserError."""
-    if not views:
-        if is_whole(steps) and steps == 0:
-            return np.zeros(0)
-        raise UserError(f"train_on: no views to train on ({steps!r} steps asked for)")
-    r = view_rays(views)
-    ens.set_rays(r["origins"], r["directions"], r["rgb"], r["distance"], r["hit"], reset_occupancy, r["empty"],
-                 r["background"])
-    return ens.train(steps, progress=progress and steps != 0)
-
-
-def predict_view(ens, camera) -> dict:
-    """Render a whole camera with a field or ensemble: images (H,W,3) / (H,W)."""
-    o, d = camera_rays(camera)
-    p = ens.predict(o, d)
-    h, w = camera.height, camera.width
-    return {"rgb": np.clip(p["rgb_mean"], 0, 1).reshape(h, w, 3), "rgb_var": p["rgb_var"].reshape(h, w, 3),
-            "distance": p["distance_mean"].reshape(h, w), "distance_var": p["distance_var"].reshape(h, w),
-            "opacity": p["opacity"].reshape(h, w)}
-
-
 def evaluate(source, views: list[View], cfg: RunConfig, progress: bool = False) -> tuple[dict, list[dict]]:
     """Train a fresh evaluation field on ``views``; score it on every held-out view.
 
@@ -562,24 +493,10 @@ def evaluate(source, views: list[View], cfg: RunConfig, progress: bool = False) 
     # How well the field fits its own training views (the last tenth of its steps), and fitted them at first.
     tenth = max(1, len(losses) // 10)
     fit_psnr, start_psnr = loss_psnr(losses[-tenth:]), loss_psnr(losses[:tenth])
-    preds, p_list, s_list, d_list = [], [], [], []
-    for i, cam in enumerate(source.heldout):
-        gt = source.heldout_view(i)
-        pred = predict_view(field_, cam)
-        preds.append(pred)
-        p_list.append(psnr(pred["rgb"], gt.rgb))
-        s_list.append(ssim(pred["rgb"], gt.rgb) if min(gt.rgb.shape[:2]) >= 11 else float("nan"))
-        d_list.append(distance_error(pred["distance"], gt.distance, gt.mask))
-    # SSIM needs 11x11 pixels and the distance error needs hits: without them, None (null in run.json).
-    metrics = {"views": len(views), "psnr": float(np.mean(p_list)), "ssim": _mean_or_none(s_list),
-               "distance_error": _mean_or_none(d_list), "fit_psnr": fit_psnr, "fit_start_psnr": start_psnr,
+    scores, preds = score_views(field_, (source.heldout_view(i) for i in range(len(source.heldout))))
+    metrics = {"views": len(views), **scores, "fit_psnr": fit_psnr, "fit_start_psnr": start_psnr,
                "eval_seconds": round(time.perf_counter() - t0, 3)}
     return metrics, preds
-
-
-def _mean_or_none(values) -> float | None:
-    """Mean of the finite values, or None when every value is NaN."""
-    return None if np.isnan(values).all() else float(np.nanmean(values))
 
 
 # ---------------------------------------------------------------------------
@@ -656,7 +573,7 @@ class Run:
         self.planner_digest = planner_digest(cfg.planner)  # of the code just loaded
         self.planner.check_ensemble_size(cfg.ensemble)
         source_field_config(source, cfg)  # field options are checked before anything is written
-        self.env = ActiveViewEnv(source, cfg.budget)
+        self.env = ActiveViewEnv(source, cfg.budget, allow_repeats=True)  # the random planner repeats views
         self.rng = planner_rng(cfg.seed)
         self.record = None
         self.ensemble = None

@@ -1,4 +1,5 @@
 import re
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -19,7 +20,8 @@ def test_passes_gymnasium_env_checker(source):
 
 
 def test_reset_step_mask_and_termination(source):
-    env = ActiveViewEnv(source, budget=4)
+    env = ActiveViewEnv(source, budget=4, allow_repeats=True)
+    assert env.reset(seed=3)[1]["captured"] == []  # an episode starts with nothing captured
     obs, info = env.reset(seed=3, options={"initial_views": 2})
     assert len(info["captured"]) == 2 and len(set(info["captured"])) == 2
     assert info["action_mask"].sum() == 8 and info["views_left"] == 2
@@ -40,7 +42,7 @@ def test_reset_step_mask_and_termination(source):
 
 def test_capture_arbitrary_pose(source):
     env = ActiveViewEnv(source, budget=2)
-    first, _ = env.reset(seed=0)
+    first, _ = env.reset(seed=0, options={"initial_views": 1})
     pose = source.heldout[0].to_world
     obs = env.capture_pose(pose)
     assert np.allclose(obs["pose"], pose)
@@ -245,7 +247,7 @@ def test_actions_that_are_no_candidate_index_are_named_as_given(source, action):
     ([1, 2, 3, 4, 5], "cannot restore 5 captured views: more than the budget \\(4\\)"),
 ])
 def test_restore_checks_what_it_restores(source, captured, message):
-    env = ActiveViewEnv(source, budget=4)
+    env = ActiveViewEnv(source, budget=4, allow_repeats=True)
     with pytest.raises(UserError, match=message):
         env.restore(captured)
     env.restore([np.int64(3), 3])  # numpy indices and repeats are captures
@@ -259,3 +261,139 @@ def test_reset_takes_numpy_seeds_and_refuses_others(source):
     for seed in (1.5, -1, "3"):
         with pytest.raises(UserError, match="the seed must be a whole number of at least 0"):
             env.reset(seed=seed)
+
+
+# -- gymnasium registration, rendering, repeats and rewards ---------------------------
+
+#: The rewards' fields at their smallest: seconds for a whole check_env.
+TINY_FIELD = {"batch_rays": 256, "n_samples": 16}
+TINY_REWARDS = {
+    "none": None, "coverage": None,
+    "uncertainty": {"members": 2, "initial_steps": 20, "steps_per_view": 10, "rays_per_candidate": 16,
+                    "field": TINY_FIELD},
+    "psnr": {"steps": 20, "field": TINY_FIELD},
+}
+
+
+def test_gymnasium_make_builds_the_environment(source, spot_xml):
+    import gymnasium
+
+    from mitsuba_active import ENV_ID
+    from mitsuba_active.env import make_env
+
+    env = gymnasium.make(ENV_ID, scene=spot_xml, budget=2, n_candidates=4, n_heldout=2, resolution=8, spp=1,
+                         cache_dir=False, reward="coverage")
+    assert isinstance(env.unwrapped, ActiveViewEnv) and env.unwrapped.reward.name == "coverage"
+    assert env.unwrapped.action_space.n == 4 and env.observation_space["rgb"].shape == (8, 8, 3)
+    # A view source made already, gymnasium's wrappers, and its time limit.
+    env = gymnasium.make(ENV_ID, scene=source, budget=3, max_episode_steps=1)
+    assert env.unwrapped.source is source
+    env.reset(seed=0)
+    assert env.step(0)[3] is True  # truncated by the time limit
+    with pytest.raises(gymnasium.error.ResetNeeded):  # OrderEnforcing
+        gymnasium.make(ENV_ID, scene=source, budget=2).step(0)
+    frames = gymnasium.make(ENV_ID, scene=source, budget=2, render_mode="rgb_array_list")
+    frames.reset(seed=0)
+    frames.step(4)
+    assert [f.shape for f in frames.render()] == [(12, 12, 3)] * 2
+    with pytest.raises(UserError, match="view source 'spot' is made already: its settings resolution"):
+        make_env(source, resolution=16)
+    with pytest.raises(UserError, match="scene must be a scene XML, .* got int"):
+        make_env(3)
+
+
+def test_render_gives_the_latest_view(source):
+    env = ActiveViewEnv(source, budget=3, render_mode="rgb_array")
+    env.reset(seed=0)
+    black = env.render()
+    assert black.shape == (12, 12, 3) and black.dtype == np.uint8 and black.max() == 0
+    for action in (2, 7):
+        obs = env.step(action)[0]
+        frame = env.render()
+        assert frame.dtype == np.uint8 and np.array_equal(frame, np.round(obs["rgb"] * 255).astype(np.uint8))
+    env.capture_pose(source.heldout[0].to_world)  # not a step: the frame stays
+    assert np.array_equal(env.render(), frame) and frame.max() > 0
+    assert ActiveViewEnv(source, budget=2).render() is None
+    assert ActiveViewEnv.metadata["render_modes"] == ["rgb_array"]
+    with pytest.raises(UserError, match="unknown render_mode 'human'; the environment renders 'rgb_array'"):
+        ActiveViewEnv(source, budget=2, render_mode="human")
+
+
+def test_a_captured_view_is_refused_unless_repeats_are_allowed(source):
+    from mitsuba_active.errors import RepeatedView
+
+    env = ActiveViewEnv(source, budget=4)
+    info = env.reset(seed=0, options={"initial_views": 2})[1]
+    taken = info["captured"][0]
+    with pytest.raises(ValueError, match=f"candidate {taken} is captured already") as caught:
+        env.step(taken)
+    assert isinstance(caught.value, RepeatedView) and env.captured == info["captured"]  # no budget spent
+    with pytest.raises(RepeatedView):
+        env.restore([1, 1])
+    assert env.captured == info["captured"]  # refused before anything changed
+    repeats = ActiveViewEnv(source, budget=4, allow_repeats=True)
+    repeats.restore([1, 1])
+    assert repeats.step(1)[4]["captured"] == [1, 1, 1]
+
+
+def test_coverage_rewards_newly_seen_surface(source):
+    env = ActiveViewEnv(source, budget=4, reward="coverage", allow_repeats=True)
+    env.reset(seed=0)
+    forward = np.stack([c.forward for c in source.candidates])
+    first, back = 0, int(np.argmin(forward @ forward[0]))  # the candidate looking the most the other way
+    rewards = [env.step(a)[1] for a in (first, first, back)]
+    assert 0 < rewards[0] <= 1 and rewards[1] == 0.0 and rewards[2] > 0.1
+    assert sum(rewards) <= 1
+
+
+def test_uncertainty_and_psnr_rewards_are_gains(source):
+    for name in ("uncertainty", "psnr"):
+        env = ActiveViewEnv(source, budget=3, reward=name, reward_options=TINY_REWARDS[name])
+        env.reset(seed=0)
+        rewards = [env.step(a)[1] for a in (0, 5, 9)]
+        assert np.isfinite(rewards).all() and np.mean(rewards) > 0, (name, rewards)
+        assert rewards[0] > 0, (name, rewards)  # the first view: from an untrained field
+
+
+@pytest.mark.parametrize("reward, allow_repeats, render_mode", [
+    ("none", False, None), ("none", True, "rgb_array"), ("coverage", False, "rgb_array"),
+    ("coverage", True, None), ("uncertainty", False, None), ("uncertainty", True, "rgb_array"),
+    ("psnr", False, "rgb_array"), ("psnr", True, None),
+])
+def test_gymnasium_checks_every_option(source, reward, allow_repeats, render_mode):
+    import gymnasium
+
+    from mitsuba_active import ENV_ID
+
+    env = gymnasium.make(ENV_ID, scene=source, budget=3, reward=reward, reward_options=TINY_REWARDS[reward],
+                         allow_repeats=allow_repeats, render_mode=render_mode)
+    # Rewards of trained fields are equal to ~1e-6, not bit for bit: the spec says so.
+    assert env.spec.nondeterministic is (reward in ("uncertainty", "psnr"))
+    check_env(env.unwrapped)  # with its spec: every render mode and a second environment too
+
+
+@pytest.mark.parametrize("kw, message", [
+    (dict(reward="ssim"), "unknown reward 'ssim'; choose one of 'none', 'coverage', 'uncertainty', 'psnr'"),
+    (dict(reward="psnr", reward_options={"step": 5}), "unknown option 'step' of the psnr reward; its settings "
+                                                     "are steps, field_preset, field, seed"),
+    (dict(reward="none", reward_options={"seed": 1}), "unknown option 'seed' of the none reward; it has no"),
+    (dict(reward="uncertainty", reward_options={"members": 1}), "members must be a whole number in \\[2, 64\\]"),
+    (dict(reward="psnr", reward_options={"field": {"n_sample": 8}}), "unknown field option n_sample"),
+    (dict(reward="coverage", reward_options=[1]), "reward options must be a dict of settings, not list"),
+    (dict(allow_repeats="no"), "allow_repeats must be True or False, got 'no'"),
+])
+def test_reward_settings_are_checked(source, kw, message):
+    with pytest.raises(UserError, match=message):
+        ActiveViewEnv(source, budget=2, **kw)
+
+
+def test_a_reward_object_takes_no_reward_options(source):
+    from mitsuba_active.rewards import CoverageReward
+
+    env = ActiveViewEnv(source, budget=2, reward=CoverageReward(seed=3))
+    assert env.reward.options() == {"seed": 3}
+    with pytest.raises(UserError, match="reward_options are the settings of a reward given by name"):
+        ActiveViewEnv(source, budget=2, reward=CoverageReward(), reward_options={"seed": 1})
+    without_depth = SimpleNamespace(**vars(source), has_distance=False)
+    with pytest.raises(UserError, match="the coverage reward needs distances, and spot has no depth maps"):
+        ActiveViewEnv(without_depth, budget=2, reward="coverage")

@@ -30,6 +30,7 @@ from .checks import is_whole
 from .datasets import open_source
 from .errors import RepeatedView, UserError
 from .groundtruth import GroundTruth, View
+from .imageio_utils import to_uint8
 from .rewards import Reward, make_reward
 
 
@@ -277,7 +278,7 @@ class ActiveViewEnv(gym.Env):
         if self.render_mode is None:
             return None
         rgb = self.views[-1].rgb if self.views else np.zeros((*self.shape, 3), np.float32)
-        return np.round(np.clip(rgb, 0.0, 1.0) * 255).astype(np.uint8)
+        return to_uint8(rgb)  # as the run's PNGs of its views
 
     @property
     def spec(self):

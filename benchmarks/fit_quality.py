@@ -26,6 +26,9 @@ Usage::
     PYTHONPATH=. python benchmarks/fit_quality.py --dataset ../shared/data/datasets/nerf_synthetic_mic \
         --downscale 4 --train-views 20 --preset default --seconds 180 --out benchmarks/results/fit_quality_mic_20.json
 
+``--steps N`` trains N steps instead of a time budget: PSNR at equal steps
+compares settings on a machine busy with other work.
+
 ``--set`` changes any other :class:`FieldConfig` option, e.g. empty-space
 skipping: ``--set empty_weight=1 --set occupancy_resolution=64``.
 """
@@ -101,6 +104,8 @@ def main(argv=None):
     ap.add_argument("--preset", choices=list(FIELD_PRESETS), default=None,
                     help="a run preset's options for the images' width, under --set's [FieldConfig's defaults]")
     ap.add_argument("--seconds", type=float, default=60.0, help="training wall-time budget")
+    ap.add_argument("--steps", type=int, default=0,
+                    help="train this many steps instead (0: --seconds), for comparisons on a busy machine")
     ap.add_argument("--eval-every", type=float, default=10.0)
     ap.add_argument("--members", type=int, default=1)
     ap.add_argument("--train-views", type=int, default=50, help="(a dataset's: evenly spaced, 0 for all)")
@@ -131,12 +136,12 @@ def main(argv=None):
     curve = []
     trained, steps, next_eval = 0.0, 0, args.eval_every
     chunk = 10
-    while trained < args.seconds:
+    while (steps < args.steps) if args.steps else (trained < args.seconds):
         t0 = time.perf_counter()
         losses = ens.train(chunk)
         trained += time.perf_counter() - t0
         steps += chunk
-        if trained >= next_eval or trained >= args.seconds:
+        if trained >= next_eval or (steps >= args.steps if args.steps else trained >= args.seconds):
             m = evaluate(ens, test)
             occ = ens.occupancy()
             m.update(seconds=trained, steps=steps, train_mse=float(losses[-1]),

@@ -91,6 +91,17 @@ def test_the_default_preset_renders_as_the_library_renders_it(tmp_path, camera):
     assert np.abs(flat[:, 8] - p["opacity"]).max() < 1e-2 and p["opacity"].max() > 0.05
 
 
+def test_a_view_dependent_field_renders_as_the_library_renders_it(tmp_path, camera):
+    assert register()
+    cfg = FieldConfig(n_levels=2, base_resolution=8, log2_table_size=12, n_samples=32, batch_rays=512,
+                      render_batch=1024, view_degree=2, view_resolution=4)
+    path = trained_field(tmp_path / "field.npz", cfg)
+    assert Ensemble.load(path).view_numpy().any()
+    _, img = render(path, pixel_centre_sensor(camera), linear=False)
+    p = Ensemble.load(path).predict(*camera_rays(camera))
+    assert np.abs(img.reshape(-1, img.shape[-1])[:, :3] - p["rgb_mean"]).max() < 1e-5
+
+
 def test_default_output_is_linear_rgb(field_path, camera):
     _, img = render(field_path, pixel_centre_sensor(camera))
     p = Ensemble.load(field_path).predict(*camera_rays(camera))

@@ -159,6 +159,15 @@ class FieldConfig:
         Without it a field may paint the background as fog at the far side
         of the box, which also leaves no empty space to skip; 0 disables it.
 
+    View dependence (see :mod:`mitsuba_active.field.view`)
+    ------------------------------------------------------
+    view_degree:
+        Degree (1 or 2) of the spherical harmonics of the view direction
+        that add a colour residual at each ray's hit, for glossy surfaces;
+        0 (the default): a diffuse field.
+    view_resolution:
+        Cells per axis of the dense grid of the residual's coefficients.
+
     Empty-space skipping (see :mod:`mitsuba_active.field.occupancy`)
     ------------------------------------------------------------------
     occupancy_resolution:
@@ -194,6 +203,8 @@ class FieldConfig:
     epsilon: float = 1e-8
     distance_weight: float = 0.0
     empty_weight: float = 0.0
+    view_degree: int = 0
+    view_resolution: int = 32
     occupancy_resolution: int = 0
     occupancy_threshold: float = 0.01
     occupancy_interval: int = 16
@@ -245,6 +256,8 @@ class FieldConfig:
             if getattr(self, name) * self.n_samples > MAX_BATCH_SAMPLES:
                 raise UserError(f"FieldConfig: {name} x n_samples = {getattr(self, name) * self.n_samples} "
                                 f"samples per batch, more than {MAX_BATCH_SAMPLES}")
+        if not 0 <= int(self.view_degree) <= 2 or not 1 <= int(self.view_resolution) <= 256:
+            raise UserError("FieldConfig.view_degree must be in [0, 2] (0: diffuse) and view_resolution in [1, 256]")
         if not 0 <= int(self.occupancy_resolution) <= 256:
             raise UserError("FieldConfig.occupancy_resolution must be in [0, 256] (0: off)")
         if not self.occupancy_threshold > 0 or int(self.occupancy_interval) < 1 \

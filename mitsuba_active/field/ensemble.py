@@ -28,6 +28,7 @@ from .config import MAX_MEMBERS, MAX_STEPS, FieldConfig
 from .grid import GridLayout, init_grid
 from .occupancy import DECAY, cell_opacity
 from .render import FieldParams, hash_u32, render_flat, render_members, uniform_from_u32
+from .view import n_coefficients, view_layout
 
 
 #: Side given to the fields' box where the object is flat (a side at most
@@ -149,7 +150,10 @@ class Ensemble:
         subclass with other starting values changes it here)."""
         return grid
 
-    def _make_optimizer(self, grid, bg, adam_state=None):
+    def _make_optimizer(self, grid, bg, adam_state=None, view=None):
+        """Adam over the grid table (K, E, 4), the backgrounds (K, 3) and, with
+        ``view_degree``, the view-dependent colour's table (flat, as
+        :meth:`view_numpy` gives it; None: zeros); ``adam_state`` as saved."""
         cfg = self.config
         self._opt = dr.opt.Adam(lr=cfg.lr, beta_1=cfg.beta_1, beta_2=cfg.beta_2,
                                 epsilon=cfg.epsilon)
@@ -157,6 +161,9 @@ class Ensemble:
         table = np.ascontiguousarray(np.transpose(np.asarray(grid, np.float32), (1, 0, 2)))
         self._opt["grid"] = mi.Float(table.ravel())
         self._opt["background"] = mi.Float(np.ascontiguousarray(bg, np.float32).ravel())
+        if cfg.view_degree > 0:  # a diffuse start: the residual is 0 until views ask for it
+            self._opt["view"] = mi.Float(np.zeros(self.view_size, np.float32) if view is None else
+                                         np.ascontiguousarray(view, np.float32).ravel())
         self._opt.set_learning_rate({"background": cfg.lr_background})
         if adam_state is not None:
             for key, (t, m, v) in adam_state.items():
@@ -174,12 +181,28 @@ class Ensemble:
     def params(self) -> FieldParams:
         """Current parameters as a :class:`FieldParams` (Dr.Jit arrays)."""
         self._check_variant()
+        cfg = self.config
         return FieldParams(grid=self._opt["grid"], background=self._opt["background"],
                            layout=self.layout, box_min=self.box_min, box_max=self.box_max,
-                           n_samples=int(self.config.n_samples),
-                           density_bias=float(self.config.density_bias),
+                           n_samples=int(cfg.n_samples),
+                           density_bias=float(cfg.density_bias),
                            n_members=self.n_members, occupancy=self._occupied,
-                           occupancy_resolution=int(self.config.occupancy_resolution))
+                           occupancy_resolution=int(cfg.occupancy_resolution),
+                           view=self._opt["view"] if cfg.view_degree > 0 else None,
+                           view_degree=int(cfg.view_degree), view_resolution=int(cfg.view_resolution))
+
+    @property
+    def view_size(self) -> int:
+        """Floats of the view-dependent colour's table, all members (0 for a diffuse field)."""
+        cfg = self.config
+        if cfg.view_degree == 0:
+            return 0
+        return view_layout(cfg.view_resolution).n_entries * self.n_members * 3 * n_coefficients(cfg.view_degree)
+
+    def view_numpy(self) -> np.ndarray:
+        """The view-dependent colour's table as flat float32 (:attr:`view_size`,),
+        laid out as in memory (see :mod:`.view`); empty for a diffuse field."""
+        return self._numpy("view") if self.config.view_degree > 0 else np.zeros(0, np.float32)
 
     def options(self) -> dict:
         """Options beyond :class:`FieldConfig` that a saved file keeps (none here)."""
@@ -192,7 +215,8 @@ class Ensemble:
 
     @property
     def n_params(self) -> int:
-        """Trainable parameters of one member (grid floats + 3 background)."""
+        """Trainable parameters of one member (grid floats + 3 background; the
+        view-dependent colour's table, :meth:`view_numpy`, is apart)."""
         return self.layout.n_grid_params + 3
 
     def member_params(self, member: int) -> np.ndarray:

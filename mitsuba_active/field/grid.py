@@ -91,7 +91,7 @@ def reduce_mode():
     return dr.ReduceMode.Auto
 
 
-def _corners(layout: GridLayout, u):
+def corners(layout: GridLayout, u):
     """Yield (level, table entry index, trilinear weight) for the 8 corners
     of every level around normalised positions ``u`` (``mi.Point3f``)."""
     x_unit = dr.clip(mi.Vector3f(u), 0.0, 1.0)
@@ -144,7 +144,7 @@ def query(grid, layout: GridLayout, n_members: int, u, member=None, active=True)
     if member is None:
         XF = type(mi.ArrayXf())
         acc = [[mi.Float(0.0)] * N_CHANNELS for _ in range(K)]
-        for _, idx, w in _corners(layout, u):
+        for _, idx, w in corners(layout, u):
             # One K*4-wide packet gather per corner (index in units of K*4).
             v = dr.gather(XF, grid, idx, active, mode=mode, shape=(K * N_CHANNELS, dr.width(idx)))
             for k in range(K):
@@ -153,7 +153,7 @@ def query(grid, layout: GridLayout, n_members: int, u, member=None, active=True)
         return [mi.Vector4f(*a) for a in acc]
     mem = mi.UInt32(member)
     acc = [mi.Float(0.0)] * N_CHANNELS
-    for _, idx, w in _corners(layout, u):
+    for _, idx, w in corners(layout, u):
         v = dr.gather(mi.Vector4f, grid, idx * K + mem, active, mode=mode)
         for ch in range(N_CHANNELS):
             acc[ch] = dr.fma(v[ch], w, acc[ch])
@@ -175,7 +175,7 @@ def accumulate(table, layout: GridLayout, n_members: int, u, values, member=None
     mode = reduce_mode()
     XF = type(mi.ArrayXf())
     mem = None if member is None else mi.UInt32(member)
-    for _, idx, w in _corners(layout, u):
+    for _, idx, w in corners(layout, u):
         if mem is None:  # one K*4-wide packet per corner, as query gathers it
             dr.scatter_add(table, XF(*[v * w for v in values]), idx, active, mode=mode)
         else:

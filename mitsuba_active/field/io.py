@@ -26,6 +26,9 @@ key                    dtype / shape     meaning
                                          member-interleaved order [entry][member]
                                          [channel] (optional)
 ``adam_{m,v}_background`` float32 (K*3,) Adam moments of ``background`` (optional)
+``view``               float32 (V,)      the view-dependent colour's table, as in
+                                         memory (only with ``view_degree``; see
+                                         :mod:`.view`), with ``adam_{m,v}_view``
 ``occupancy``          float32 (G,G,G)   decaying max of cell opacities, [z,y,x]
                                          (only with empty-space skipping active)
 ``occupancy_age``      int64 ()          steps since the grid was reset (with
@@ -70,9 +73,13 @@ def save_ensemble(ens, path) -> Path:
         grid=ens.grid_numpy(),
         background=ens._numpy("background").reshape(K, 3),
     )
+    keys = ("grid", "background")
+    if ens.config.view_degree > 0:
+        arrays["view"] = ens.view_numpy()
+        keys += ("view",)
     st = ens._opt.state
     arrays["adam_t"] = np.int64(int(np.array(st["grid"][3][0]).ravel()[0]))
-    for key in ("grid", "background"):
+    for key in keys:
         _, m, v, _ = st[key][3]
         arrays[f"adam_m_{key}"] = np.array(m, np.float32)
         arrays[f"adam_v_{key}"] = np.array(v, np.float32)
@@ -146,11 +153,16 @@ def _ensemble_from(cls, z, path):
     grid = z["grid"]
     if grid.shape != (ens.n_members, ens.layout.n_entries, N_CHANNELS):
         raise UserError(f"{path}: grid shape {grid.shape} does not match its config")
+    keys, view = ("grid", "background"), None
+    if cfg.view_degree > 0:
+        view = z["view"]
+        if view.shape != (ens.view_size,):
+            raise UserError(f"{path}: view table shape {view.shape} does not match its config")
+        keys += ("view",)
     adam = None
     if "adam_t" in z:
-        adam = {key: (int(z["adam_t"]), z[f"adam_m_{key}"], z[f"adam_v_{key}"])
-                for key in ("grid", "background")}
-    ens._make_optimizer(grid, z["background"], adam)
+        adam = {key: (int(z["adam_t"]), z[f"adam_m_{key}"], z[f"adam_v_{key}"]) for key in keys}
+    ens._make_optimizer(grid, z["background"], adam, view)
     ens._step = int(z["step"])
     if "occupancy" in z:
         G = int(cfg.occupancy_resolution)

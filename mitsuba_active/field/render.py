@@ -31,6 +31,7 @@ import numpy as np
 from ..errors import UserError
 from .grid import GridLayout, accumulate, query
 from .occupancy import occupied
+from .view import view_residual
 
 
 @dataclass
@@ -49,6 +50,10 @@ class FieldParams:
         occupancy: ``mi.Bool`` of ``occupancy_resolution**3`` cells, or None
             (no empty-space skipping; see :mod:`.occupancy`).
         occupancy_resolution: cells per axis of ``occupancy``.
+        view: ``mi.Float`` table of the view-dependent colour's coefficients
+            (see :mod:`.view`), or None (a diffuse field).
+        view_degree, view_resolution: its spherical-harmonic degree and
+            cells per axis.
     """
 
     grid: object
@@ -61,6 +66,9 @@ class FieldParams:
     n_members: int = 1
     occupancy: object = None
     occupancy_resolution: int = 0
+    view: object = None
+    view_degree: int = 0
+    view_resolution: int = 0
 
     @property
     def diag(self) -> float:
@@ -118,7 +126,8 @@ def sample_along_rays(o, d, params: FieldParams, jitter=None):
         dict of per-sample arrays (length R*S): ``ray`` (UInt32 ray index),
         ``t`` (distance from origin), ``delta`` (bin length), ``p``
         (Point3f), ``u`` (Point3f box-normalised), ``valid`` (Bool), and
-        per ray (length R) ``ray_valid`` (Bool: the ray meets the box).
+        per ray (length R) ``ray_valid`` (Bool: the ray meets the box), ``o``
+        and ``d`` (the rays, as given).
     """
     S = int(params.n_samples)
     R = max(dr.width(o), dr.width(d))  # one origin (a pinhole camera's) may serve every ray
@@ -140,7 +149,7 @@ def sample_along_rays(o, d, params: FieldParams, jitter=None):
     bmin = mi.Vector3f(params.box_min)
     inv_ext = mi.Vector3f(1.0 / np.subtract(params.box_max, params.box_min))
     u = mi.Point3f((p - bmin) * inv_ext)
-    return dict(ray=ray, t=t, delta=delta, p=p, u=u, valid=valid, ray_valid=t_far > t_near)
+    return dict(ray=ray, t=t, delta=delta, p=p, u=u, valid=valid, ray_valid=t_far > t_near, o=o, d=d)
 
 
 def _raw_to_field(raw, valid, density_bias: float, inv_diag: float):
@@ -473,23 +482,40 @@ def _composited(params: FieldParams, s: dict, raws: list, members: list, return_
             sigma, rgb_s = field_at(params, s["u"], member, s["valid"], raw=raw)
             w, rgb, dsum, opac = composite(sigma * s["delta"], rgb_s, s["t"], S)
             sums.append((rgb, dsum, opac, w))
-    return _over_background(params, sums, members, return_weights)
+    return _over_background(params, s, sums, members, return_weights)
 
 
-def _over_background(params: FieldParams, sums: list, members: list, return_weights: bool) -> list:
+def _over_background(params: FieldParams, s: dict, sums: list, members: list, return_weights: bool) -> list:
     """render_flat dicts of the members ``members`` from their composited
-    (rgb, distance sum, opacity, weights or None)."""
+    (rgb, distance sum, opacity, weights or None) of the samples ``s``, with
+    the view-dependent colour where the field has it."""
     outs = []
     for member, (rgb, dsum, opac, w) in zip(members, sums):
         # One background index per ray: the gradient of a background read once and
         # broadcast to every ray would take a reduction kernel per channel and member.
         bg = dr.gather(mi.Vector3f, params.background, dr.zeros(mi.UInt32, dr.width(opac)) + mi.UInt32(member))
         bg = mi.Color3f(*[dr.rcp(1.0 + dr.exp(-bg[c])) for c in range(3)])
-        out = dict(rgb=rgb + (1.0 - opac) * bg, distance=dsum / dr.maximum(opac, 1e-6), opacity=opac)
+        distance = dsum / dr.maximum(opac, 1e-6)
+        rgb = rgb + (1.0 - opac) * bg
+        if params.view is not None:
+            rgb = rgb + dr.detach(opac) * _view_colour(params, s, dr.detach(distance), member)
+            if not dr.grad_enabled(params.view):  # a render, not a training step: colours as images hold them
+                rgb = dr.clip(rgb, 0.0, 1.0)
+        out = dict(rgb=rgb, distance=distance, opacity=opac)
         if return_weights:
             out["weights"] = w
         outs.append(out)
     return outs
+
+
+def _view_colour(params: FieldParams, s: dict, distance, member):
+    """The view-dependent colour residual (``mi.Color3f``, per ray) at the
+    rays' expected hits ``distance`` away (see :mod:`.view`)."""
+    o, d = mi.Point3f(s["o"]), mi.Vector3f(s["d"])
+    bmin = mi.Vector3f(params.box_min)
+    inv_ext = mi.Vector3f(1.0 / np.subtract(params.box_max, params.box_min))
+    u = mi.Point3f((dr.fma(d, distance, o) - bmin) * inv_ext)
+    return view_residual(params.view, params.view_resolution, params.view_degree, params.n_members, u, d, member)
 
 
 def _rendered(params: FieldParams, s: dict, member, members: list, return_weights=False) -> list:
@@ -513,7 +539,8 @@ def _rendered(params: FieldParams, s: dict, member, members: list, return_weight
     lookup = (params.layout, params.n_members, s["u"], member, s["valid"])
     sums = dr.custom(_MarchedGrid, params.grid, raws, lookup, s["t"], s["delta"], _marched_valid(params, s),
                      int(params.n_samples), float(params.density_bias), 1.0 / params.diag)
-    return _over_background(params, [(rgb, dsum, opac, None) for rgb, dsum, opac in sums], members, return_weights)
+    return _over_background(params, s, [(rgb, dsum, opac, None) for rgb, dsum, opac in sums], members,
+                            return_weights)
 
 
 def render_flat(params: FieldParams, o, d, member, jitter=None, return_weights=False):

@@ -102,6 +102,8 @@ class VariationalField(Ensemble):
         super().__init__(bbox_min, bbox_max, 2, config, seed)
         if self.config.occupancy_resolution > 0:
             raise UserError("a VariationalField has no empty-space skipping: set occupancy_resolution = 0")
+        if self.config.view_degree > 0:
+            raise UserError("a VariationalField is diffuse: set view_degree = 0")
         self.max_std, self.entropy_weight, self.draws = float(max_std), float(entropy_weight), int(draws)
 
     def _initial_grid(self, grid: np.ndarray) -> np.ndarray:

@@ -31,22 +31,28 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import MITSUBA_TO_OPENGL, Camera, rigid_pose
+from .colmap import colmap_source, is_colmap_project
 from .checks import is_number, is_whole
 from .errors import UserError
 from .groundtruth import View
-from .imageio_utils import exr_size, linear_to_srgb, read_exr, srgb_to_linear
+from .images import crop, image_size, read_depth, read_rgb
+from .imageio_utils import linear_to_srgb, srgb_to_linear
+from .lens import Lens, lens_from_keys, remap, valid_scale
+from .viewcache import cached
 
+#: The files a dataset folder is read from, in order of preference.
+TRANSFORMS_FILES = ("transforms_train.json", "transforms.json")
 #: Extensions tried, in order, when a ``file_path`` has none (nerf-synthetic: "./train/r_0").
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".exr", ".PNG", ".JPG", ".JPEG")
 #: Per-frame keys that override the file's top-level camera keys (nerfstudio allows this).
 CAMERA_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y",
                "k1", "k2", "k3", "k4", "p1", "p2", "camera_model")
-DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
-PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
-#: Relative difference of fl_x and fl_y accepted as square pixels.
+#: Relative difference of fl_x and fl_y accepted as square pixels (larger ones are resampled).
 SQUARE_PIXEL_TOL = 1e-3
 #: Every how many frames one is held out when a single-file dataset has no split.
 HOLDOUT_EVERY = 8
+#: instant-ngp's defaults for the map from scene to its unit cube (``pos * scale + offset``).
+NGP_SCALE, NGP_OFFSET = 0.33, [0.5, 0.5, 0.5]
 #: Margin of the estimated object box over the radius that fills the views.
 BOUNDS_MARGIN = 1.1
 
@@ -67,6 +73,9 @@ class Frame:
             map (along each ray, from the optical centre) when ``depth_is_distance``.
         depth_scale: factor from the map's stored values to scene units.
         depth_is_distance: the map already holds distances (``distance_file_path``).
+        lens: the full-resolution image's lens when it is resampled to a
+            pinhole with square pixels before cropping (distortion, or
+            ``fl_y`` unlike ``fl_x``), else None.
     """
 
     image: Path
@@ -77,6 +86,7 @@ class Frame:
     depth: Path | None = None
     depth_scale: float = 1.0
     depth_is_distance: bool = False
+    lens: Lens | None = None
 
 
 class DatasetSource:
@@ -95,10 +105,12 @@ class DatasetSource:
         name: the dataset folder's name.
         content_hash: hex digest of the dataset's JSON files (None unless
             built by :meth:`from_path`); runs are matched to it.
+        cache_dir: folder where large images' views are kept once loaded
+            (:mod:`~mitsuba_active.viewcache`), or None.
     """
 
     def __init__(self, candidate_frames, heldout_frames, bbox_min, bbox_max, name="dataset",
-                 white_background=True, root=None):
+                 white_background=True, root=None, cache_dir=None):
         self.candidate_frames, self.heldout_frames = list(candidate_frames), list(heldout_frames)
         self.candidates = [f.camera for f in self.candidate_frames]
         self.heldout = [f.camera for f in self.heldout_frames]
@@ -117,6 +129,7 @@ class DatasetSource:
         self.white_background = bool(white_background)
         self._views: dict[int, View] = {}  # keyed by id(frame): frames may repeat across splits
         self.content_hash = None  # set by from_path: a digest of the dataset's JSON files
+        self.cache_dir = None if cache_dir is None else Path(cache_dir)
 
     @property
     def has_distance(self) -> bool:
@@ -126,7 +139,7 @@ class DatasetSource:
     @classmethod
     def from_path(cls, path, downscale: int | None = 1, n_heldout: int | None = None,
                   white_background: bool = True, n_candidates: int | None = None,
-                  resolution: int = 64) -> "DatasetSource":
+                  resolution: int = 64, cache_dir=False) -> "DatasetSource":
         """Read a dataset.
 
         Args:
@@ -138,7 +151,36 @@ class DatasetSource:
             white_background: composite RGBA images on white (else black).
             n_candidates: keep at most this many candidate frames, evenly spaced.
             resolution: target width in pixels when ``downscale`` is None.
+            cache_dir: where large images' loaded views are kept (``None``:
+                :func:`~mitsuba_active.groundtruth.default_cache_dir`; ``False``: nowhere).
         """
+        files, name, root = _locate(path)
+        metas = [(f, _read_json(f)) for f in files]
+        train, test = _split(metas, files)
+        if not train and not test:
+            raise UserError(f"{files[0]}: the dataset has no frames")
+        # Parse everything first (errors name the frame), then drop missing images.
+        train = [_parse_frame(*t) for t in train]
+        test = [_parse_frame(*t) for t in test]
+        src = cls.from_parsed(train, test, _bounds_from_keys(metas), name, root, downscale=downscale,
+                              n_heldout=n_heldout, white_background=white_background, n_candidates=n_candidates,
+                              resolution=resolution, cache_dir=cache_dir, where=files[0])
+        # What the frames are (poses, image and depth file names), wherever
+        # the dataset lies and whichever of its names it was opened by.
+        digest = hashlib.sha256()
+        for f in files:
+            digest.update(f.read_bytes())
+        src.content_hash = digest.hexdigest()
+        return src
+
+    @classmethod
+    def from_parsed(cls, train, test, bounds, name, root, *, downscale=1, n_heldout=None, white_background=True,
+                    n_candidates=None, resolution=64, cache_dir=False, where=None) -> "DatasetSource":
+        """A source of parsed frames ``(image, to_world (Mitsuba), camera keys, (depth map, scale, is
+        distance), where)`` as :meth:`from_path` reads them (``bounds``: ``(min, max)`` or None:
+        estimated); the options are :meth:`from_path`'s, ``where`` names the dataset in messages."""
+        from .groundtruth import default_cache_dir
+
         for key, count in (("n_candidates", n_candidates), ("n_heldout", n_heldout)):
             if count is not None and (not is_whole(count) or count < 0):
                 raise UserError(f"{key} must be a whole number >= 0 (or None: all frames), got {count!r}")
@@ -146,28 +188,19 @@ class DatasetSource:
             raise UserError("at least one candidate view is needed, got n_candidates=0")
         if downscale is None and (not is_whole(resolution) or resolution < 1):
             raise UserError(f"image resolution must be a positive whole number, got {resolution!r}")
-        files, name, root = _locate(path)
-        metas = [(f, _read_json(f)) for f in files]
-        train, test = _split(metas, files)
-        if not train and not test:
-            raise UserError(f"{files[0]}: the dataset has no frames")
-        bounds = _bounds_from_keys(metas)
-
-        # Parse everything first (errors name the frame), then drop missing images.
-        train = [_parse_frame(*t) for t in train]
-        test = [_parse_frame(*t) for t in test]
+        where = where or root
         missing = [t[0] for t in train + test if not t[0].is_file()]
         n_frames = len(train) + len(test)
         train = [t for t in train if t[0].is_file()]
         test = [t for t in test if t[0].is_file()]
         # Refused before the warning about skipped frames: one line says it all.
         if not train and not test:
-            raise UserError(f"{files[0]}: none of the dataset's image files exist (e.g. {missing[0]})")
+            raise UserError(f"{where}: none of the dataset's image files exist (e.g. {missing[0]})")
         if not train:
             raise UserError(f"{root}: no training frame has an image file")
         if missing:
             warnings.warn(f"{name}: skipped {len(missing)} of {n_frames} frames whose image "
-                          f"file is missing (e.g. {missing[0]})", stacklevel=2)
+                          f"file is missing (e.g. {missing[0]})", stacklevel=3)
 
         if downscale is None:
             width = _full_size(train[0])[0]
@@ -189,14 +222,9 @@ class DatasetSource:
                             "a held-out count of 0); tag some frames \"split\": \"test\"")
         if bounds is None:
             bounds = estimate_bounds([f.camera for f in train + test])
-        src = cls(train, test, bounds[0], bounds[1], name=name, white_background=white_background, root=root)
-        # What the frames are (poses, image and depth file names), wherever
-        # the dataset lies and whichever of its names it was opened by.
-        digest = hashlib.sha256()
-        for f in files:
-            digest.update(f.read_bytes())
-        src.content_hash = digest.hexdigest()
-        return src
+        cache = None if cache_dir is False else Path(cache_dir or default_cache_dir())
+        return cls(train, test, bounds[0], bounds[1], name=name, white_background=white_background, root=root,
+                   cache_dir=cache)
 
     # -- ViewSource ----------------------------------------------------------
     def candidate_view(self, index: int) -> View:
@@ -219,7 +247,14 @@ class DatasetSource:
         are, so that a caller's edits (an augmentation in place) reach no other view."""
         key = id(frame)
         if key not in self._views:
-            self._views[key] = load_view(frame, self.white_background)
+            def load():
+                v = load_view(frame, self.white_background)
+                return {"rgb": v.rgb, "distance": v.distance, "empty": v.known_empty,
+                        "alpha": np.array(v.background is not None)}
+
+            a = cached(self.cache_dir, frame, self.white_background, load)
+            background = (None if not a["alpha"] else (1.0,) * 3 if self.white_background else (0.0,) * 3)
+            self._views[key] = View(a["rgb"], a["distance"], a["distance"] > 0, frame.camera, a["empty"], background)
         view = self._views[key]
         return View(view.rgb.copy(), view.distance.copy(), view.mask.copy(), view.camera, view.known_empty.copy(),
                     view.background)
@@ -236,21 +271,30 @@ class DatasetSource:
 
 def load_view(frame: Frame, white_background: bool = True) -> View:
     """Read, composite, crop and downscale one frame's image (and depth map if any)."""
-    cam, f = frame.camera, frame.downscale
-    rgb, alpha = _read_rgb(frame.image, white_background)
+    cam, f, lens = frame.camera, frame.downscale, frame.lens
+    rgb, alpha = read_rgb(frame.image, white_background, frame.full_size)
     if rgb.shape[1::-1] != tuple(frame.full_size):
         w, h = frame.full_size
         raise UserError(f"{frame.image} is {rgb.shape[1]}x{rgb.shape[0]} pixels, the dataset says {w}x{h}")
-    rgb = _crop(rgb, frame.crop, frame.image)
-    # Average in linear light, as a camera pixel (and Mitsuba's box filter) does.
-    rgb = linear_to_srgb(area_downscale(srgb_to_linear(rgb), f))
+    # Resampled and averaged in linear light, as a camera pixel (and Mitsuba's box filter) does.
+    rgb = srgb_to_linear(rgb)
+    if lens is not None:
+        rgb = remap(lens, rgb)
+        alpha = None if alpha is None else remap(lens, alpha)
+    rgb = linear_to_srgb(area_downscale(crop(rgb, frame.crop, frame.image), f))
     # Known empty: every full-resolution pixel under a downscaled one is transparent.
     empty = (np.zeros(rgb.shape[:2], bool) if alpha is None
-             else area_downscale(_crop(alpha, frame.crop, frame.image), f) <= 0.0)
+             else area_downscale(crop(alpha, frame.crop, frame.image), f) <= 0.0)
     distance = np.zeros((cam.height, cam.width), np.float32)
     if frame.depth is not None:
         entry = "distance_file_path" if frame.depth_is_distance else "depth_file_path"
-        depth = _crop(_read_depth(frame.depth, entry), frame.crop, frame.depth) * frame.depth_scale
+        depth = read_depth(frame.depth, entry)
+        if lens is not None:
+            if depth.shape[1::-1] != lens.size:
+                raise UserError(f"{frame.depth} is {depth.shape[1]}x{depth.shape[0]} pixels, its image "
+                                f"{lens.size[0]}x{lens.size[1]}")
+            depth = remap(lens, depth, nearest=True)  # depths of neighbours would lie on no surface
+        depth = crop(depth, frame.crop, frame.depth) * frame.depth_scale
         # Depth at the full-resolution pixel nearest each downscaled pixel centre:
         # averaging across a silhouette would invent depths that lie on no surface.
         z = depth[f // 2::f, f // 2::f][: cam.height, : cam.width]
@@ -276,106 +320,6 @@ def area_downscale(img: np.ndarray, f: int) -> np.ndarray:
     return img.reshape(h // f, f, w // f, f, *img.shape[2:]).mean(axis=(1, 3))
 
 
-def _read_exr(path: Path, what: str) -> dict:
-    """:func:`~mitsuba_active.imageio_utils.read_exr`, with a file it cannot read as a UserError."""
-    try:
-        return read_exr(path)
-    except ValueError as exc:
-        raise UserError(f"cannot read {what} {path}: {exc}") from None
-
-
-def _exr_colour(path: Path, white_background: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """(H, W, 3) float32 sRGB of an EXR image: RGB, RGBA or grey (Y); its
-    alpha is premultiplied (EXR's convention), so composited in linear light;
-    and its (H, W) alpha, or None."""
-    ch = _read_exr(path, "image")
-    if "RGBA" in ch:  # OpenEXR groups R, G, B and A
-        rgb, alpha = ch["RGBA"][..., :3], ch["RGBA"][..., 3]
-    elif "RGB" in ch or "Y" in ch:
-        rgb = ch["RGB"] if "RGB" in ch else np.repeat(ch["Y"][..., None], 3, axis=-1)
-        alpha = ch.get("A")
-    else:
-        raise UserError(f"{path} has no colour channels (RGB, RGBA or Y), only {', '.join(sorted(ch))}")
-    if alpha is not None:
-        rgb = rgb + (1.0 - alpha[..., None]) * (1.0 if white_background else 0.0)
-    return linear_to_srgb(rgb), alpha
-
-
-def _read_rgb(path: Path, white_background: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """(H, W, 3) float32 sRGB in [0, 1], alpha composited (in sRGB for PNG and JPEG, the
-    nerf-synthetic convention; in linear light for EXR); and the (H, W) float32 alpha in
-    [0, 1], or None for an image without one."""
-    if path.suffix.lower() == ".exr":
-        rgb, alpha = _exr_colour(path, white_background)
-        alpha = None if alpha is None else np.clip(alpha, 0.0, 1.0).astype(np.float32)
-        return np.clip(rgb, 0.0, 1.0).astype(np.float32), alpha
-    import imageio.v3 as iio
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            cmyk = im.mode == "CMYK"  # 4 channels that are no alpha: as RGB
-        raw = iio.imread(path, mode="RGB") if cmyk else iio.imread(path)
-    except Exception as exc:
-        raise UserError(f"cannot read image {path}: {exc}") from None
-    scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(raw.dtype, 1.0)
-    img = raw.astype(np.float32) / scale
-    if img.ndim == 2:
-        img = img[..., None]
-    alpha = None
-    if img.shape[-1] in (2, 4):  # grey + alpha, RGB + alpha
-        alpha = np.clip(img[..., -1], 0.0, 1.0)
-        bg = 1.0 if white_background else 0.0
-        img = img[..., :-1] * alpha[..., None] + bg * (1.0 - alpha[..., None])
-    if img.shape[-1] == 1:
-        img = np.repeat(img, 3, axis=-1)
-    return np.clip(img, 0.0, 1.0).astype(np.float32), alpha
-
-
-def _read_depth(path: Path, entry: str) -> np.ndarray:
-    """(H, W) float32 stored depth values (unscaled); ``entry``: the frame's key naming the file."""
-    if path.suffix.lower() == ".exr":
-        ch = _read_exr(path, "depth map")
-        key = next((k for k in ("Z", "Y", "R", "depth") if k in ch), next(iter(ch)))
-        d = ch[key]
-        return d[..., 0] if d.ndim == 3 else d
-    if path.suffix.lower() == ".npy":
-        try:
-            d = np.load(path)
-        except (OSError, ValueError) as exc:
-            raise UserError(f"cannot read depth map {path}: {exc}") from None
-        if d.ndim != 2 or not np.issubdtype(d.dtype, np.number):
-            raise UserError(f"depth map {path} must be a 2-D array of numbers, got {d.dtype} {d.shape}")
-        return d.astype(np.float32)
-    import imageio.v3 as iio
-
-    try:
-        d = iio.imread(path)
-    except Exception as exc:
-        raise UserError(f"cannot read depth map {path}: {exc}") from None
-    if d.dtype == np.uint8 and _png_bit_depth(path) == 16:  # Pillow reads 16-bit colour PNGs as 8-bit
-        raise UserError(f"depth map {path} is a 16-bit colour PNG, which is read as 8-bit; store depth as a "
-                        "16-bit grey PNG, an EXR or a .npy")
-    if d.dtype == np.uint8:
-        # 8-bit maps (e.g. nerf-synthetic's r_N_depth_0186.png) are normalised, not metric.
-        raise UserError(f"depth map {path} is 8-bit and therefore not metric; remove the frame's {entry}")
-    return (d[..., 0] if d.ndim == 3 else d).astype(np.float32)
-
-
-def _png_bit_depth(path: Path) -> int | None:
-    """Bits per channel a PNG file's header gives (None for another kind of file)."""
-    with open(path, "rb") as fh:
-        head = fh.read(25)
-    return head[24] if len(head) == 25 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" else None
-
-
-def _crop(img: np.ndarray, crop, path) -> np.ndarray:
-    x0, y0, w, h = crop
-    if img.shape[0] < y0 + h or img.shape[1] < x0 + w:
-        raise UserError(f"{path} is {img.shape[1]}x{img.shape[0]} pixels, smaller than the dataset says")
-    return img[y0:y0 + h, x0:x0 + w]
-
-
 # ---------------------------------------------------------------------------
 # Files and frames
 # ---------------------------------------------------------------------------
@@ -386,12 +330,12 @@ def _locate(path):
     if not p.exists():
         raise UserError(f"dataset not found: {p}")
     if p.is_dir():
-        for candidate in ("transforms_train.json", "transforms.json"):
+        for candidate in TRANSFORMS_FILES:
             if (p / candidate).is_file():
                 p = p / candidate
                 break
         else:
-            raise UserError(f"{p} holds neither transforms_train.json nor transforms.json")
+            raise UserError(f"{p} holds neither transforms_train.json nor transforms.json (nor a COLMAP sparse/0)")
     if p.suffix.lower() != ".json":
         raise UserError(f"{p}: a dataset is a transforms .json file or a folder holding one")
     root = p.parent
@@ -529,18 +473,7 @@ def _full_size(parsed) -> tuple[int, int]:
             raise UserError(f"{where}: {name} must be a whole number of pixels, got {value!r}")
     if keys["w"] is not None and keys["h"] is not None:
         return int(keys["w"]), int(keys["h"])
-    if image.suffix.lower() == ".exr":
-        try:
-            return exr_size(image)
-        except ValueError as exc:
-            raise UserError(f"cannot read image {image}: {exc}") from None
-    from PIL import Image
-
-    try:
-        with Image.open(image) as im:
-            return im.size
-    except Exception as exc:
-        raise UserError(f"cannot read image {image}: {exc}") from None
+    return image_size(image)
 
 
 def _window(parsed, full_size, downscale: int, size=None) -> tuple:
@@ -553,8 +486,11 @@ def _window(parsed, full_size, downscale: int, size=None) -> tuple:
     _, _, keys, _, where = parsed
     w, h = full_size
     _, _, cx, cy = _intrinsics(keys, w, h, where)
-    x0, wc = _centred_window(cx, w, downscale, size and size[0])
-    y0, hc = _centred_window(cy, h, downscale, size and size[1])
+    lens = _lens(parsed, full_size)
+    # Undistorted, the image's corners may see past the captured one: a narrower window.
+    s = 1.0 if lens is None else valid_scale(lens)
+    x0, wc = _centred_window(cx, w, downscale, size and size[0], s * 0.5 * w)
+    y0, hc = _centred_window(cy, h, downscale, size and size[1], s * 0.5 * h)
     if wc < downscale or hc < downscale:
         raise UserError(f"{where}: the image ({w}x{h}) is too small for downscale {downscale}")
     return x0, y0, wc, hc
@@ -568,14 +504,23 @@ def _make_frame(parsed, full_size, downscale: int, size=None) -> Frame:
     x0, y0, wc, hc = _window(parsed, full_size, downscale, size)
     fov = math.degrees(2.0 * math.atan(0.5 * wc / fx))
     cam = Camera(to_world, fov, wc // downscale, hc // downscale)
-    return Frame(image, cam, (x0, y0, wc, hc), downscale, (w, h), *depth)
+    return Frame(image, cam, (x0, y0, wc, hc), downscale, (w, h), *depth, lens=_lens(parsed, full_size))
 
 
-def _centred_window(c: float, size: int, f: int, most: int | None = None) -> tuple[int, int]:
+def _lens(parsed, full_size) -> Lens | None:
+    """The frame's :class:`~mitsuba_active.lens.Lens` when its image must be resampled, else None."""
+    _, _, keys, _, where = parsed
+    fx, fy, cx, cy = _intrinsics(keys, *full_size, where)
+    lens = lens_from_keys(keys, fx, fy, cx, cy, full_size, where)
+    return lens if lens.distorted or abs(fx - fy) > SQUARE_PIXEL_TOL * fx else None
+
+
+def _centred_window(c: float, size: int, f: int, most: int | None = None,
+                    half_most: float = math.inf) -> tuple[int, int]:
     """``(start, length)``: the widest pixel window centred on ``c`` (to half a pixel), length a multiple
-    of ``f`` and at most ``most``."""
+    of ``f``, at most ``most`` and reaching at most ``half_most`` pixels either side of ``c``."""
     centre = int(round(c * 2)) / 2  # centres fall on pixel edges or centres only
-    half = min(centre, size - centre)
+    half = min(centre, size - centre, math.floor(half_most * 2) / 2)
     length = min(int(2 * half), most or size) // f * f
     start = int(round(centre - length / 2))
     return max(start, 0), length
@@ -590,18 +535,11 @@ def _focal_from_angle(keys: dict, name: str, size: int, where: str) -> float:
 
 
 def _intrinsics(keys: dict, w: int, h: int, where: str):
-    """``(fx, fy, cx, cy)`` in full-resolution pixels; UserError for what a centred pinhole cannot model."""
+    """``(fx, fy, cx, cy)`` in full-resolution pixels; UserError for what no camera can be."""
     for name in ("fl_x", "fl_y", "cx", "cy", "camera_angle_x", "camera_angle_y"):
         value = keys[name]
         if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float))):
             raise UserError(f"{where}: {name} must be a number, got {value!r}")
-    model = keys["camera_model"]
-    if model is not None and str(model).upper() not in PINHOLE_MODELS:
-        raise UserError(f"{where}: camera_model {model} is not supported; only pinhole cameras are")
-    bent = {k: keys[k] for k in DISTORTION_KEYS if keys[k] not in (None, 0, 0.0)}
-    if bent:
-        raise UserError(f"{where}: lens distortion ({', '.join(bent)}) is not supported; "
-                        "undistort the images first")
     if keys["fl_x"] is not None:
         fx = float(keys["fl_x"])
     elif keys["camera_angle_x"] is not None:
@@ -616,8 +554,6 @@ def _intrinsics(keys: dict, w: int, h: int, where: str):
         fy = fx
     if not (fx > 0 and fy > 0 and math.isfinite(fx) and math.isfinite(fy)):
         raise UserError(f"{where}: focal length must be positive, got fl_x={fx}, fl_y={fy}")
-    if abs(fx - fy) > SQUARE_PIXEL_TOL * fx:
-        raise UserError(f"{where}: non-square pixels (fl_x={fx:.6g}, fl_y={fy:.6g}) are not supported")
     cx = float(keys["cx"]) if keys["cx"] is not None else 0.5 * w
     cy = float(keys["cy"]) if keys["cy"] is not None else 0.5 * h
     if not (0 < cx < w and 0 < cy < h):
@@ -640,7 +576,8 @@ def _subsample(frames: list, n: int | None) -> list:
 # ---------------------------------------------------------------------------
 
 def _bounds_from_keys(metas):
-    """``(min, max)`` from an ``aabb`` or ``scene_box`` key ([[x,y,z],[x,y,z]]), else None."""
+    """``(min, max)`` from an ``aabb`` or ``scene_box`` key ([[x,y,z],[x,y,z]]), else instant-ngp's
+    ``aabb_scale`` unit cube, else None."""
     for jf, meta in metas:
         for key in ("aabb", "scene_box"):
             box = meta.get(key)
@@ -656,7 +593,27 @@ def _bounds_from_keys(metas):
             if not (b.shape == (2, 3) and np.all(np.isfinite(b)) and np.all(b[1] >= b[0]) and np.any(b[1] > b[0])):
                 raise UserError(f"{jf}: '{key}' must be [[xmin,ymin,zmin],[xmax,ymax,zmax]], got {box}")
             return b[0], b[1]
+    for jf, meta in metas:
+        if "aabb_scale" in meta:
+            return _ngp_box(jf, meta)
     return None
+
+
+def _ngp_box(jf: Path, meta: dict):
+    """instant-ngp's box: the unit cube of its space (``pos * scale + offset``), in the file's coordinates;
+    a note when ``aabb_scale`` says the capture's background reaches past it."""
+    scale, offset, k = meta.get("scale", NGP_SCALE), meta.get("offset", NGP_OFFSET), meta["aabb_scale"]
+    o = np.asarray(offset, dtype=np.float64) if isinstance(offset, list) else np.zeros(0)
+    if not (is_number(scale, finite=True) and scale > 0 and o.shape == (3,) and np.all(np.isfinite(o))
+            and is_number(k, finite=True) and k >= 1):
+        raise UserError(f"{jf}: aabb_scale (>= 1), scale (> 0) and offset ([x, y, z]) must be numbers, "
+                        f"got {k!r}, {scale!r}, {offset!r}")
+    if np.ptp(o) > 0:  # instant-ngp cycles the axes before it offsets them
+        raise UserError(f"{jf}: an offset unlike on every axis ({offset}) is not read; give the box as 'aabb'")
+    if k > 1:
+        warnings.warn(f"{jf}: aabb_scale {k}: the background reaches past the object's box, and only the box "
+                      "is modelled (what lies beyond shows as the field's background)", stacklevel=4)
+    return (0.0 - o) / scale, (1.0 - o) / scale
 
 
 def estimate_bounds(cameras, margin: float = BOUNDS_MARGIN):
@@ -698,11 +655,14 @@ def open_source(path, *, rig="auto", n_candidates=100, n_heldout=20, resolution=
     """A view source for ``path``: a Mitsuba scene ``.xml`` or a dataset (``.json`` or folder).
 
     Scenes give :meth:`SceneSource.from_xml(...) <mitsuba_active.env.SceneSource.from_xml>`;
-    datasets give :meth:`DatasetSource.from_path`, keeping at most
+    datasets (a transforms ``.json`` or a folder holding one; a COLMAP project
+    folder with ``sparse/0``: :func:`~mitsuba_active.colmap.colmap_source`)
+    give :meth:`DatasetSource.from_path`, keeping at most
     ``n_candidates`` / ``n_heldout`` frames (evenly spaced) and shrinking
     images by ``downscale`` (``None``: ``max(1, round(width / resolution))``).
     A dataset's poses and fov are fixed, so ``rig`` must be ``"auto"`` and
-    ``fov`` None; ``spp`` and ``cache_dir`` only concern scenes.
+    ``fov`` None; ``spp`` only concerns scenes, and ``cache_dir`` also keeps
+    large images' loaded views.
     """
     from .env import SceneSource
 
@@ -717,7 +677,10 @@ def open_source(path, *, rig="auto", n_candidates=100, n_heldout=20, resolution=
             raise UserError(f"{p}: a dataset's cameras are fixed; the rig option ('{rig}') does not apply")
         if fov is not None:
             raise UserError(f"{p}: a dataset's field of view is fixed; the fov option does not apply")
+        if p.is_dir() and is_colmap_project(p) and not any((p / n).is_file() for n in TRANSFORMS_FILES):
+            return colmap_source(p, downscale=downscale, n_heldout=n_heldout, n_candidates=n_candidates,
+                                 resolution=resolution, cache_dir=cache_dir)
         return DatasetSource.from_path(p, downscale=downscale, n_heldout=n_heldout,
-                                       n_candidates=n_candidates, resolution=resolution)
+                                       n_candidates=n_candidates, resolution=resolution, cache_dir=cache_dir)
     raise UserError(f"{p}: expected a Mitsuba scene (.xml), a transforms .json, or a dataset folder "
                     "(for a mesh, 'mitsuba-active plan' and 'mitsuba-active scene' author a scene around it)")

@@ -449,12 +449,8 @@ def _bad_matrix(root):
     write_dataset(root, n=3, frame_extra={1: {"transform_matrix": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}})
 
 
-def _distorted(root):
-    write_dataset(root, n=3, extra={"k1": 0.1})
-
-
-def _non_square(root):
-    write_dataset(root, n=3, extra={"fl_y": 12.0})
+def _panorama(root):
+    write_dataset(root, n=3, extra={"camera_model": "EQUIRECTANGULAR"})
 
 
 def _wordy_focal(root):
@@ -524,7 +520,7 @@ def _numbered_file_path(root):
     (_bad_json, "not valid JSON"), (_deep_json, "nested too deeply to read"),
     (_numbered_file_path, "frame 2's file_path must be a file name, got 5"), (_no_frames, "no frames"), (_no_focal, "camera_angle_x or fl_x"),
     (_all_missing, "none of the dataset's image files"), (_bad_matrix, "must be 4x4"),
-    (_distorted, "distortion"), (_non_square, "non-square"), (_bad_aabb, "aabb"),
+    (_panorama, "camera_model EQUIRECTANGULAR \\(a panorama\\) is not supported"), (_bad_aabb, "aabb"),
     (_wordy_focal, "camera_angle_x must be a number"), (_flat_focal, "camera_angle_x must be in \\(0, pi\\) radians, got 0"),
     (_no_test_frames, "no held-out frames"), (_nerfstudio_train_only, "no held-out frames"),
     (_wordy_width, "w must be a whole number of pixels, got 'abc'"),

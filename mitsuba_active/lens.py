@@ -1,0 +1,162 @@
+"""Lens distortion of captured images, and its removal (OpenCV camera models).
+
+Real captures (phones, COLMAP, nerfstudio's ``ns-process-data``) come with
+a distortion model. :class:`Lens` holds one frame's intrinsics and model;
+:func:`undistort_maps` gives, for every pixel of a pinhole image with square
+pixels (focal length ``fx`` in both axes, the same principal point and
+size), the point of the captured image it sees, and :func:`remap` resamples
+an image there (OpenCV's ``cv2.remap``). Undistorted images keep the field,
+the planners and the Mitsuba plugin pinhole.
+
+Models, on normalised image coordinates ``(x, y)``, ``r^2 = x^2 + y^2``:
+
+* ``OPENCV`` (radial-tangential, as nerfstudio and instant-ngp apply it):
+  ``x' = x d + 2 p1 x y + p2 (r^2 + 2 x^2)``, ``y' = y d + p1 (r^2 + 2 y^2) + 2 p2 x y``
+  with ``d = 1 + k1 r^2 + k2 r^4 + k3 r^6 + k4 r^8``;
+* ``OPENCV_FISHEYE`` (equidistant): ``theta = atan r``,
+  ``theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8)``,
+  ``(x', y') = (x, y) theta_d / r``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from .errors import UserError
+
+#: Radial-tangential and fisheye model names, as transforms.json and COLMAP spell them.
+RADTAN, FISHEYE = "OPENCV", "OPENCV_FISHEYE"
+#: ``camera_model`` values of a transforms.json, and the model each one means.
+TRANSFORMS_MODELS = {"PINHOLE": RADTAN, "SIMPLE_PINHOLE": RADTAN, "OPENCV": RADTAN, "FULL_OPENCV": RADTAN,
+                     "OPENCV_FISHEYE": FISHEYE, "FISHEYE": FISHEYE, "EQUIRECTANGULAR": None}
+#: Coefficient names, in the order :attr:`Lens.coeffs` holds them.
+COEFF_NAMES = ("k1", "k2", "k3", "k4", "p1", "p2")
+#: Radius steps searched for where the radial model stops growing.
+FOLD_SAMPLES = 4096
+
+
+@dataclass(frozen=True)
+class Lens:
+    """One frame's intrinsics and distortion, at the image file's resolution.
+
+    Attributes:
+        model: :data:`RADTAN` or :data:`FISHEYE`.
+        fx, fy, cx, cy: focal lengths and principal point in pixels.
+        coeffs: ``(k1, k2, k3, k4, p1, p2)`` (p1, p2 are 0 for the fisheye).
+        size: ``(width, height)`` of the image in pixels.
+    """
+
+    model: str
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    coeffs: tuple
+    size: tuple
+
+    @property
+    def distorted(self) -> bool:
+        """True when the model bends rays (any coefficient non-zero, or a fisheye)."""
+        return self.model == FISHEYE or any(c != 0.0 for c in self.coeffs)
+
+    def to_keys(self) -> dict:
+        """The lens as transforms.json keys (``camera_model`` and the coefficients)."""
+        return {"camera_model": self.model, **dict(zip(COEFF_NAMES, self.coeffs))}
+
+
+def lens_from_keys(keys: dict, fx: float, fy: float, cx: float, cy: float, size, where: str) -> Lens:
+    """The :class:`Lens` of a transforms.json frame's ``camera_model`` and ``k1``..``k4``, ``p1``, ``p2``."""
+    name = keys.get("camera_model")
+    if name is not None and (not isinstance(name, str) or name.upper() not in TRANSFORMS_MODELS):
+        known = ", ".join(m for m, v in TRANSFORMS_MODELS.items() if v)
+        raise UserError(f"{where}: camera_model {name!r} is not supported (known: {known})")
+    model = TRANSFORMS_MODELS[name.upper()] if name else RADTAN
+    if model is None:
+        raise UserError(f"{where}: camera_model {name} (a panorama) is not supported; only perspective and "
+                        "fisheye cameras are")
+    coeffs = []
+    for key in COEFF_NAMES:
+        value = keys.get(key)
+        if value is None:
+            value = 0.0
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise UserError(f"{where}: {key} must be a number, got {value!r}")
+        coeffs.append(float(value))
+    if model == FISHEYE and (coeffs[4] or coeffs[5]):
+        raise UserError(f"{where}: a fisheye lens ({name}) has no tangential terms; p1 and p2 must be 0")
+    return Lens(model, float(fx), float(fy), float(cx), float(cy), tuple(coeffs), tuple(int(s) for s in size))
+
+
+def distort(lens: Lens, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distorted normalised coordinates of undistorted ones (float64 arrays of one shape)."""
+    k1, k2, k3, k4, p1, p2 = lens.coeffs
+    r2 = x * x + y * y
+    if lens.model == FISHEYE:
+        r = np.sqrt(r2)
+        theta = np.arctan(r)
+        t2 = theta * theta
+        theta_d = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+        scale = np.where(r > 1e-12, theta_d / np.maximum(r, 1e-12), 1.0)
+        return x * scale, y * scale
+    d = 1 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
+    return (x * d + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+            y * d + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
+
+
+def _fold_radius(lens: Lens, r_max: float) -> float:
+    """The undistorted radius (normalised) up to which the radial model keeps growing, at most ``r_max``:
+    beyond it, points fold back onto the image and would show what lies elsewhere."""
+    r = np.linspace(0.0, r_max, FOLD_SAMPLES)
+    rd, _ = distort(Lens(lens.model, 1, 1, 0, 0, lens.coeffs[:4] + (0.0, 0.0), lens.size), r, np.zeros_like(r))
+    falling = np.nonzero(np.diff(rd) <= 0)[0]
+    return float(r[falling[0]]) if falling.size else math.inf
+
+
+@lru_cache(maxsize=4)
+def undistort_maps(lens: Lens) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where each pixel of the undistorted image lies in the captured one.
+
+    The undistorted image is a pinhole with focal length ``fx`` in both axes,
+    principal point ``(cx, cy)`` and the captured image's size. Returns
+    ``(map_x, map_y, valid)``: (H, W) float32 pixel coordinates (pixel
+    centres at +0.5 are OpenCV's integers) and an (H, W) bool mask of the
+    pixels that see the captured image (inside it, before any fold).
+    """
+    w, h = lens.size
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64) + 0.5, np.arange(h, dtype=np.float64) + 0.5)
+    x, y = (u - lens.cx) / lens.fx, (v - lens.cy) / lens.fx
+    xd, yd = distort(lens, x, y)
+    # Captured pixel coordinates, with OpenCV's integer pixel centres.
+    map_x, map_y = xd * lens.fx + lens.cx - 0.5, yd * lens.fy + lens.cy - 0.5
+    inside = (map_x >= -0.5) & (map_x <= w - 0.5) & (map_y >= -0.5) & (map_y <= h - 0.5)
+    valid = inside & (np.hypot(x, y) < _fold_radius(lens, float(np.hypot(x, y).max()) * 1.01))
+    return map_x.astype(np.float32), map_y.astype(np.float32), valid
+
+
+def valid_scale(lens: Lens) -> float:
+    """Largest ``s`` in (0, 1] such that the window of ``s`` times the image's half size
+    on each side of ``(cx, cy)`` sees only captured pixels (0 when none does)."""
+    w, h = lens.size
+    _, _, valid = undistort_maps(lens)
+    if valid.all():
+        return 1.0
+    rows, cols = np.nonzero(~valid)
+    # A window of scale s holds a pixel when both its offsets lie within s half sizes.
+    t = np.maximum(np.abs(cols + 0.5 - lens.cx) / (0.5 * w), np.abs(rows + 0.5 - lens.cy) / (0.5 * h))
+    return float(min(t.min(), 1.0))
+
+
+def remap(lens: Lens, img: np.ndarray, nearest: bool = False) -> np.ndarray:
+    """The undistorted image of (H, W) or (H, W, C) float32 ``img`` (bilinear, or ``nearest``); pixels that
+    see nothing captured repeat the edge (:func:`valid_scale` keeps them out of the views)."""
+    import cv2
+
+    map_x, map_y, _ = undistort_maps(lens)
+    flags = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    out = cv2.remap(np.ascontiguousarray(img, dtype=np.float32), map_x, map_y, flags,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(img.shape)

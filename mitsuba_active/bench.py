@@ -30,12 +30,9 @@ import contextlib
 import json
 import os
 import shutil
-import signal
 import tempfile
-import threading
 import time
 import tomllib
-import warnings
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 
@@ -43,6 +40,7 @@ import numpy as np
 
 from .checks import choice_named, not_a_file, setting_value, unknown_choice
 from .errors import FolderError, UserError
+from .executors import EXECUTORS, RayOptions, prepare_ray, run_local, run_ray
 from .imageio_utils import folder_name, new_entries, remove_new, replaced_folder
 from .metrics import DECIMALS, fixed, iqm, standard_error
 
@@ -511,22 +509,32 @@ def run_job(job: Job, threads: int | None = None) -> dict:
 
 
 def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, planners=None, scenes=None,
-              progress=True, log=print, report_only=False, overrides=None) -> dict:
+              progress=True, log=print, report_only=False, overrides=None, executor="local",
+              ray: RayOptions | None = None) -> dict:
     """Run every job of a suite (resuming finished ones) and write the report; returns the summary.
 
     ``report_only`` runs nothing and reports the runs finished so far (safe
     while another process is still running the suite). ``overrides``
-    (:func:`parse_overrides`) change every run's settings."""
+    (:func:`parse_overrides`) change every run's settings. ``executor`` runs
+    them (:data:`~mitsuba_active.executors.EXECUTORS`): ``local``, in
+    ``workers`` processes; ``ray``, as Ray tasks, as ``ray`` says."""
     from tqdm import tqdm
 
     from .run import ends_short_of_a_batch
 
+    if executor not in EXECUTORS:
+        raise ValueError(f"executor is one of {', '.join(EXECUTORS)}, got {executor!r}")
+    if ray is not None and executor != "ray":
+        raise ValueError("ray options are for executor='ray'")
     suite = load_suite(suite_path)
     out_dir = Path(out_dir)
     cores = os.cpu_count() or 1
     if not 1 <= workers <= MAX_WORKERS_PER_CORE * cores:
         raise UserError(f"--workers must be between 1 and {MAX_WORKERS_PER_CORE * cores} "
                         f"({MAX_WORKERS_PER_CORE} per core of this machine's {cores}), got {workers}")
+    if executor == "ray" and not report_only:  # before anything is authored
+        ray = ray or RayOptions()
+        prepare_ray(ray)
     jobs = plan_jobs(suite, out_dir, profile, seeds, planners, scenes, author=not report_only,
                      overrides=overrides)
     if report_only:
@@ -544,115 +552,17 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
         if short:
             log(f"note: in {short} of them the last round captured fewer views than a batch, so their rounds from "
                 "here differ from those of runs made with this budget from the start")
-    pool_size = max(1, min(workers, len(jobs)))  # a worker without a job would only start and stop
-    threads = max(1, cores // pool_size)
     bar = tqdm(total=len(jobs), desc=f"suite {suite.name}", unit="run", disable=not progress)
     try:
-        if workers == 1:
-            for job in jobs:
-                bar.set_postfix_str(f"{job.scene}/{job.planner}/{job.seed}")
-                run_job(job)
-                bar.update()
+        if executor == "ray":
+            bar.update(kept)
+            out_dir.mkdir(parents=True, exist_ok=True)  # the folder a worker on shared storage sees
+            run_ray([job for job in jobs if finished_record(job) is None], ray, bar)
         else:
-            _run_in_workers(jobs, pool_size, threads, bar)
+            run_local(jobs, workers, bar)
     finally:
         bar.close()
     return write_report(suite, jobs, out_dir / "report", profile, overrides)
-
-
-def _run_in_workers(jobs: list[Job], workers: int, threads: int, bar) -> None:
-    """Run the jobs in ``workers`` fresh processes (Dr.Jit must not be forked
-    once initialised); Ctrl-C stops them all and is raised here."""
-    import multiprocessing as mp
-
-    # The workers are made with Ctrl-C ignored, a disposition they keep through
-    # their start, so that one pressed while they import prints no tracebacks.
-    # (Only a Ctrl-C within the few milliseconds of making them is lost.)
-    main_thread = threading.current_thread() is threading.main_thread()
-    pool = None
-    try:
-        handler = signal.signal(signal.SIGINT, signal.SIG_IGN) if main_thread else None
-        try:
-            pool = mp.get_context("spawn").Pool(workers, initializer=_init_worker, initargs=(os.getpid(),))
-        finally:
-            if main_thread:  # None: a handler not set from Python, which cannot be put back
-                signal.signal(signal.SIGINT, signal.default_int_handler if handler is None else handler)
-        for status in pool.imap_unordered(_run_job_star, [(j, threads) for j in jobs]):
-            bar.set_postfix_str(status["job"])
-            bar.update()
-        pool.close()
-        pool.join()
-    except BaseException:  # Ctrl-C, or a failed job
-        if pool is not None:
-            _stop_pool(pool)
-        raise
-
-
-def _stop_pool(pool, patience: float = 10.0) -> None:
-    """Stop the workers (SIGTERM: they exit through their clean-up) and wait
-    for them; should that not end within ``patience`` seconds (a worker or
-    the pool's own bookkeeping stuck), end them outright, so that an
-    interrupted suite always stops."""
-    import multiprocessing as mp
-
-    stopper = threading.Thread(target=pool.terminate, daemon=True)
-    stopper.start()
-    stopper.join(patience)
-    if stopper.is_alive():
-        for child in mp.active_children():
-            child.kill()
-        stopper.join(patience)
-
-
-def _init_worker(parent: int):
-    """Ctrl-C is the parent's to handle: it stops the workers (SIGTERM), and a
-    worker stopped in a job exits through its ``finally`` blocks, so no
-    temporary file is left (an idle one exits at once). A worker whose parent
-    is gone (killed outright) stops itself the same way. tqdm's lock is a
-    thread lock here: its default, a multiprocessing lock, would be reported
-    as leaked when a worker stops."""
-    from tqdm import tqdm
-
-    def stop(signum, frame):
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # one stop; its clean-up is not cut short
-        if not _worker_busy:
-            # Idle, or already exiting (a failed job ends the pool): nothing to
-            # clean up, and an exception raised inside the interpreter's exit
-            # handlers would only be printed as a traceback.
-            os._exit(1)
-        raise SystemExit(1)
-
-    def watch_parent():
-        while os.getppid() == parent:
-            time.sleep(1.0)
-        os.kill(os.getpid(), signal.SIGTERM)
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.signal(signal.SIGTERM, stop)
-    threading.Thread(target=watch_parent, daemon=True).start()
-    tqdm.set_lock(threading.RLock())
-    # Warnings, Mitsuba's too, as the command line shows them: plain lines on stderr.
-    from .console import mitsuba_log_as_warnings, show_warning
-
-    warnings.showwarning = show_warning
-    _WORKER_LOGGING.enter_context(mitsuba_log_as_warnings())
-
-
-#: Keeps the worker's Mitsuba logging (see :func:`_init_worker`) for its lifetime.
-_WORKER_LOGGING = contextlib.ExitStack()
-
-
-#: Whether this worker process is running a job (see :func:`_init_worker`).
-_worker_busy = False
-
-
-def _run_job_star(args):
-    global _worker_busy
-    _worker_busy = True
-    try:
-        return run_job(*args)
-    finally:
-        _worker_busy = False
 
 
 # ---------------------------------------------------------------------------

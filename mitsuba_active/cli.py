@@ -17,6 +17,7 @@ import signal
 import sys
 import threading
 import warnings
+from dataclasses import fields
 from pathlib import Path
 
 from .interrupts import interruptible_imports, interrupts_deferred, sigterm_as_interrupt
@@ -30,6 +31,7 @@ with interruptible_imports():  # click and numpy load here, after the package's 
     from .checks import nearest
     from .console import mitsuba_log_as_warnings, one_line, show_warning
     from .errors import FolderError, UserError
+    from .executors import EXECUTORS, RAY_OPTION_NAMES, STORAGE, RayOptions
     from .field.config import DEFAULT_PRESET, FIELD_PRESETS
     from .imageio_utils import folder_name, new_entries, remove_new
     from .scene import DEFAULT_COLOR, UP_AXES, SceneOptions
@@ -547,6 +549,16 @@ def export(run_dir, out):
     click.echo(f"wrote {export_transforms(run_dir, out)}")
 
 
+def _ray_options(command):
+    """``bench``'s options of :class:`~mitsuba_active.executors.RayOptions`, one for each of its fields."""
+    types = {"address": str, "cpus_per_run": float, "gpus_per_run": float, "retries": int,
+             "storage": _Choice(list(STORAGE))}
+    for f in reversed(fields(RayOptions)):
+        command = click.option(RAY_OPTION_NAMES[f.name], f.name, type=types[f.name], default=f.default,
+                               show_default=f.default is not None, help=f.metadata["help"])(command)
+    return command
+
+
 @main.command()
 @click.argument("suite", type=click.Path(dir_okay=False))
 @click.option("--out", "out", type=click.Path(file_okay=False), default=None,
@@ -554,7 +566,11 @@ def export(run_dir, out):
                    "(with a larger budget in the suite file, they go on from the views they have).")
 @click.option("--profile", type=_Choice(list(PROFILES)), default="quick", show_default=True,
               help="quick: small images and few steps, one seed; full: paper-like settings, five seeds.")
-@click.option("--workers", type=int, default=1, show_default=True, help="Parallel worker processes.")
+@click.option("--workers", type=int, default=1, show_default=True,
+              help="Parallel worker processes (--executor local).")
+@click.option("--executor", type=_Choice(list(EXECUTORS)), default="local", show_default=True,
+              help="What runs the runs: " + "; ".join(f"{k}, {v}" for k, v in EXECUTORS.items()) + ".")
+@_ray_options
 @click.option("--seeds", default=None, help="Comma-separated seeds [the profile's].")
 @click.option("--planners", default=None, help="Comma-separated planners [the suite's].")
 @click.option("--scenes", default=None, help="Comma-separated scene names [all].")
@@ -567,12 +583,22 @@ def export(run_dir, out):
               help="Run nothing: write the tables and plots of the runs finished so far.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 @_one_line_errors
-def bench(suite, out, profile, workers, seeds, planners, scenes, field_preset, overrides, report_only, quiet):
+def bench(suite, out, profile, workers, executor, seeds, planners, scenes, field_preset, overrides, report_only,
+          quiet, **ray_options):
     """Run a benchmark SUITE (TOML) of scenes x planners x seeds.
 
     Writes tables and plots of its finished runs into report/ in the suite folder (--out).
     """
     from .bench import parse_overrides, run_suite
+
+    given = _given_options()
+    if executor != "ray":
+        named = [RAY_OPTION_NAMES[k] for k in ray_options if k in given]
+        if named:
+            raise UserError(f"{named[0]} is for --executor ray")
+    elif "workers" in given:
+        raise UserError("--workers is for --executor local; Ray runs as many runs at once as its CPUs "
+                        "allow (--cpus-per-run)")
 
     split = lambda s: [x.strip() for x in s.split(",") if x.strip()] if s else None  # noqa: E731
     for option, value in (("--seeds", seeds), ("--planners", planners), ("--scenes", scenes)):
@@ -593,7 +619,8 @@ def bench(suite, out, profile, workers, seeds, planners, scenes, field_preset, o
     click.get_current_context().meta[_OUT] = out
     summary = run_suite(suite, out, profile, workers, seed_list, split(planners), split(scenes),
                         progress=not quiet, report_only=report_only, overrides=parse_overrides(overrides),
-                        log=lambda m: click.echo(f"note: {m}", err=True))
+                        log=lambda m: click.echo(f"note: {m}", err=True), executor=executor,
+                        ray=RayOptions(**ray_options) if executor == "ray" else None)
     if summary["unreported_seeds"]:
         others = ",".join(map(str, summary["unreported_seeds"]))
         click.echo(f"note: {out} also holds finished runs of seed{'s' if ',' in others else ''} {others}, "

@@ -45,7 +45,7 @@ class Browser:
              f"--user-data-dir={self.profile}", "--no-first-run", "--disable-extensions",
              "--disable-background-networking", "--disable-dev-shm-usage", "--window-size=1200,900",
              # Nothing may come from the network: every host name fails to resolve.
-             "--host-resolver-rules=MAP * ~NOTFOUND", "about:blank"],
+             "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE 127.0.0.1", "about:blank"],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
             preexec_fn=pipes, pass_fds=(3, 4))
         os.close(to_child)
@@ -121,7 +121,8 @@ class Browser:
         result = self.send("Runtime.evaluate", {"expression": expression, "returnByValue": True,
                                                 "awaitPromise": True}, session=True)
         if "exceptionDetails" in result:
-            raise RuntimeError(f"{expression}: {result['exceptionDetails'].get('text')}")
+            details = result["exceptionDetails"]
+            raise RuntimeError(details.get("exception", {}).get("description") or details.get("text"))
         return result["result"].get("value")
 
     def wait_for(self, expression: str, timeout: float | None = None):

@@ -82,7 +82,8 @@ OFF_PAGE = re.compile(r"""(?:src|href)\s*=\s*["']?(?:[a-z]+:)?//|url\(\s*["']?(?
 
 CANVAS_INK = """(() => { const c = document.querySelector('#camera-view canvas');
   const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; let n = 0;
-  for (let i = 0; i < d.length; i += 4) if (Math.abs(d[i] - 251) + Math.abs(d[i+1] - 251) + Math.abs(d[i+2] - 251) > 30) n++;
+  for (let i = 0; i < d.length; i += 4)
+    if (Math.abs(d[i] - 251) + Math.abs(d[i+1] - 251) + Math.abs(d[i+2] - 251) > 30) n++;
   return n / (c.width * c.height); })()"""
 
 KINDS = "(() => { const k = {}; cameraView.objects.forEach(o => k[o.kind] = (k[o.kind] || 0) + 1); return k; })()"
@@ -147,7 +148,8 @@ def test_a_page_of_an_old_record_shows_what_it_holds_and_stays_small(browser, tm
     from mitsuba_active.webpage import write_run_page
 
     cams = fibonacci_sphere(120, (0, 0, 0), 2.0, width=128, height=128)
-    rec = {"config": {"budget": 20, "initial_views": 2, "planner": "rfe"}, "candidates": [c.to_dict() for c in cams[:100]],
+    rec = {"config": {"budget": 20, "initial_views": 2, "planner": "rfe"},
+           "candidates": [c.to_dict() for c in cams[:100]],
            "heldout": [c.to_dict() for c in cams[100:]], "captured": list(range(0, 100, 5)),
            "metrics": [{"views": 20, "psnr": 20.5, "ssim": None, "distance_error": None}], "finished": True}
     rng = np.random.default_rng(0)
@@ -173,3 +175,89 @@ def test_the_pages_markdown_tables():
     page = markdown_tables("## PSNR\n\nOne seed.\n\n| planner | a @4 |\n|---|---|\n| rfe | 1.00 < 2 |\n")
     assert page == ("<h3>PSNR</h3><p>One seed.</p><table><thead><tr><th>planner</th><th>a @4</th></tr></thead>"
                     "<tbody><tr><td>rfe</td><td>1.00 &lt; 2</td></tr></tbody></table>")
+
+
+# -- the viewer ---------------------------------------------------------------------------------------------------
+
+#: The viewer page's scene tree (viser's), found through React's fibers from the page's root element.
+SCENE_TREE = """(() => { const root = document.getElementById('root'); if (!root) return false;
+  const key = Object.keys(root).find(k => k.startsWith('__reactContainer')); if (!key) return false;
+  const stack = [root[key]];
+  while (stack.length) { const f = stack.pop(); if (!f) continue; const v = f.memoizedProps && f.memoizedProps.value;
+    if (v && v.useSceneTree && v.useSceneTree.getAll) { window.sceneTree = v.useSceneTree; return true; }
+    if (f.child) stack.push(f.child); if (f.sibling) stack.push(f.sibling); }
+  return false; })()"""
+
+VIEWER_KINDS = """(() => { const k = {}; Object.entries(sceneTree.getAll()).forEach(([n, node]) => {
+  const m = n.match(/^\\/(candidates|heldout|captured)\\/\\d+$/);
+  if (m && node && node.message && node.message.type === 'CameraFrustumMessage' && node.visibility !== false)
+    k[m[1]] = (k[m[1]] || 0) + 1; }); return k; })()"""
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_the_viewer_shows_a_run_and_follows_it(tiny_run, browser, tmp_path):
+    import json
+    import shutil
+    import threading
+
+    pytest.importorskip("viser", reason="the viewer extra (viser) is not installed")
+    from mitsuba_active.viewer import RunViewer
+
+    out, rec, _, _ = tiny_run
+    folder = tmp_path / "run"
+    shutil.copytree(out, folder)
+    # The run as it was after its first round, which --follow sees grow to the whole run.
+    first = {**rec, "captured": rec["captured"][:3], "rounds": rec["rounds"][:1], "finished": False,
+             "metrics": [m for m in rec["metrics"] if m["views"] <= 3]}
+    (folder / "run.json").write_text(json.dumps(first))
+    viewer = RunViewer(folder, port=_free_port())
+    stop = threading.Event()
+    try:
+        browser.open(f"http://127.0.0.1:{viewer.port}")
+        assert browser.wait_for(SCENE_TREE)
+        counts = lambda: browser.evaluate(VIEWER_KINDS)  # noqa: E731
+        browser.wait_for(f"({VIEWER_KINDS}).captured === 3")
+        assert counts() == {"candidates": 10, "heldout": 3, "captured": 3}
+        threading.Thread(target=viewer.follow, args=(stop, 0.05), daemon=True).start()
+        (folder / "run.json").write_text(json.dumps(rec))
+        browser.wait_for(f"({VIEWER_KINDS}).captured === 4")
+        assert counts() == {"candidates": 10, "heldout": 3, "captured": 4}
+        # A click on a capture renders the planner's ensemble from it, shown as two images.
+        viewer._clicked(("captured", 1))
+        assert browser.wait_for("document.querySelectorAll('img').length >= 2")
+        shot = iio.imread(browser.screenshot(tmp_path / "viewer.png"))
+        box = browser.evaluate("(() => { const r = document.querySelector('canvas').getBoundingClientRect();"
+                               " return [r.left, r.top, r.width, r.height]; })()")
+        x, y, w, h = (int(v) for v in box)
+        assert w > 100 and h > 100 and shot[y:y + h, x:x + w, :3].std() > 10
+        assert browser.errors == []
+    finally:
+        stop.set()
+        viewer.close()
+
+
+def test_view_refuses_a_folder_without_a_run_or_without_viser(tmp_path, monkeypatch):
+    import sys
+
+    from click.testing import CliRunner
+
+    from mitsuba_active.cli import main
+
+    res = CliRunner().invoke(main, ["view", str(tmp_path)])
+    assert res.exit_code == 2 and res.output.strip() == f"mitsuba-active: error: {tmp_path} holds no run (no run.json)"
+    (tmp_path / "run.json").write_text('{"config": {}}')
+    res = CliRunner().invoke(main, ["view", str(tmp_path)])
+    assert res.exit_code == 2 and "is not a run record" in res.output
+    monkeypatch.setitem(sys.modules, "viser", None)  # as if it were not installed
+    rec = {"config": {}, "candidates": [], "heldout": [], "captured": [], "metrics": [], "finished": False}
+    (tmp_path / "run.json").write_text(__import__("json").dumps(rec))
+    res = CliRunner().invoke(main, ["view", str(tmp_path)])
+    assert res.exit_code == 2 and res.output.strip() == ("mitsuba-active: error: the viewer needs viser: "
+                                                         "pip install 'mitsuba-active[viewer]'")

@@ -2,7 +2,7 @@
 # Set up (once) and run mitsuba-active from a clone.
 #
 #   ./run.sh plan [OPTIONS]    plan views on the bundled scene (or pass a scene), results in ./runs/
-#   ./run.sh test [PYTEST...]  run the test suite
+#   ./run.sh test [PYTEST...]  run the test suite (installs Chromium, for the reports' browser tests)
 #   ./run.sh setup             only install: LLVM >= 19 (Debian's libllvm19), a virtualenv in .venv, the package
 #   ./run.sh <command> ...     any other mitsuba-active command (scene, render, export, bench, ...)
 #
@@ -43,6 +43,11 @@ have_llvm() {  # an LLVM shared library of version >= 19, where Dr.Jit looks for
     [ -n "${DRJIT_LIBLLVM_PATH:-}" ] && [ -e "$DRJIT_LIBLLVM_PATH" ]
 }
 
+have_chromium() {
+    command -v chromium >/dev/null 2>&1 || command -v chromium-browser >/dev/null 2>&1 ||
+        command -v google-chrome >/dev/null 2>&1 || command -v google-chrome-stable >/dev/null 2>&1
+}
+
 setup() {
     have_llvm || apt_install "LLVM >= 19 for Dr.Jit (or set DRJIT_LIBLLVM_PATH)" libllvm19
     command -v python3 >/dev/null 2>&1 || apt_install "Python 3" python3 python3-venv
@@ -71,6 +76,8 @@ cmd=${1:-plan}
 setup
 case "$cmd" in
     setup) say "ready: $VENV/bin/mitsuba-active" ;;
-    test)  cd "$ROOT" && exec "$VENV/bin/python" -m pytest -q "$@" ;;
+    test)  # The reports' browser tests open their pages in headless Chromium; without one they are skipped.
+           have_chromium || ( apt_install "the reports' browser tests" chromium ) || say "browser tests will be skipped"
+           cd "$ROOT" && exec "$VENV/bin/python" -m pytest -q "$@" ;;
     *)     exec "$VENV/bin/mitsuba-active" "$cmd" "$@" ;;
 esac

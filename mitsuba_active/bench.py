@@ -43,6 +43,7 @@ from .errors import FolderError, UserError
 from .executors import EXECUTORS, RayOptions, prepare_ray, run_local, run_ray
 from .imageio_utils import folder_name, new_entries, remove_new, replaced_folder
 from .metrics import DECIMALS, fixed, iqm, standard_error
+from .webpage import REPORT_FILE, write_run_page, write_suite_page
 
 SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture", "two_sided")
 #: The report's folder of plots over all scenes, beside each scene's (no scene may be named so).
@@ -696,14 +697,17 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
     # no half-written report after an interruption, and no plots of scenes it no longer covers.
     with replaced_folder(report_dir) as folder:
         summary["mean_over_scenes"] = {metric: scene_means(summary, scenes, planners, metric) for metric in METRICS}
+        tables = []
         for metric, (title, _) in METRICS.items():
             md, csv_rows = _table(summary, scenes, planners, metric, title)
             (folder / f"table_{metric}.md").write_text(md)
             (folder / f"table_{metric}.csv").write_text("\n".join(",".join(map(str, r)) for r in csv_rows) + "\n")
+            tables.append(md)
         note = _overrides_note(summary["overrides"])
-        (folder / "table_mean.md").write_text("\n".join(
+        tables.insert(0, "\n".join(
             _mean_table(summary["mean_over_scenes"][m], planners, *METRICS[m], views=views, note=note)
             for m in METRICS))
+        (folder / "table_mean.md").write_text(tables[0])
         (folder / "results.json").write_text(json.dumps(summary, indent=1))
         # Plots: per scene, IQM over seeds with a +-SE band; and a summary over the scenes
         # that every planner with results has. A planner has one colour in every plot.
@@ -741,7 +745,22 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
             (folder / "plots" / SUMMARY).mkdir(parents=True, exist_ok=True)
             plot_metrics(mean_series, folder / "plots" / SUMMARY, colors=colors,
                          title=f"{suite.name}: mean over {len(shared)} scene{'' if len(shared) == 1 else 's'}")
+        write_suite_page(folder, report_dir, f"{suite.name} ({profile})", tables, _run_pages(jobs))
     return summary
+
+
+def _run_pages(jobs: list[Job]) -> dict:
+    """scene -> planner -> folders of the finished runs, each with its page (written where a run
+    finished before runs had one)."""
+    out: dict = {}
+    for job in jobs:
+        rec = finished_record(job)
+        if rec is None:
+            continue
+        if not (Path(job.out) / REPORT_FILE).is_file():
+            write_run_page(job.out, rec)
+        out.setdefault(job.scene, {}).setdefault(job.planner, []).append(job.out)
+    return out
 
 
 def _overrides_note(overrides: dict) -> str:

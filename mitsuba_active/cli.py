@@ -560,6 +560,24 @@ def _ray_options(command):
 
 
 @main.command()
+@click.argument("run_dir", type=click.Path())
+@click.option("--host", default="127.0.0.1", show_default=True, help="Address to serve on (0.0.0.0: every one).")
+@click.option("--port", type=int, default=8080, show_default=True,
+              help="Port to serve on (the next free one if taken).")
+@click.option("--follow", is_flag=True, help="Redraw as a plan writes the folder.")
+@_one_line_errors
+def view(run_dir, host, port, follow):
+    """Show a run in the browser: its cameras, each round's scores, its captures.
+
+    Clicking a camera renders the planner's ensemble's mean and variance from it. Needs
+    the viewer extra: pip install 'mitsuba-active[viewer]'.
+    """
+    from .viewer import serve
+
+    serve(run_dir, host, port, follow, log=lambda m: click.echo(m, err=True))
+
+
+@main.command()
 @click.argument("suite", type=click.Path(dir_okay=False))
 @click.option("--out", "out", type=click.Path(file_okay=False), default=None,
               help="Suite folder [bench/SUITE-PROFILE, plus each --set]; finished runs there are kept and skipped "

@@ -43,6 +43,7 @@ from .planners.base import (is_planner_file, planner_digest, planner_folder, pla
                              resolve_reference)
 from .training import (MAX_CANDIDATE_RAYS, PLANNER_INIT_SCALE, has_distances, predict_view, score_views,
                        sparse_candidate_rays, train_on)
+from .webpage import REPORT_FILE, write_run_page
 
 RUN_FORMAT = 1
 
@@ -748,6 +749,8 @@ class Run:
         cfg = self.cfg
         if self.record["finished"]:
             self.log(f"{self.out} is already complete")
+            if not (self.out / REPORT_FILE).is_file():  # a run finished before runs had a page
+                write_run_page(self.out, self.record)
             return self.record
         if resumed:
             self.env.reset(seed=cfg.seed, options={"initial_views": 0})
@@ -821,6 +824,7 @@ class Run:
         self._write_outputs()
         self.record["finished"] = True
         self._save_record()
+        write_run_page(self.out, self.record)
         return self.record
 
     def _evaluate_due(self) -> None:

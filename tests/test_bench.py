@@ -192,6 +192,11 @@ def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
     assert "vs even @4" in (report / "table_mean.md").read_text()
     assert json.loads((report / "results.json").read_text())["mean_over_scenes"]["psnr"]["rfe"]["scenes"] == 2
     assert (report / "plots" / "ball" / "psnr.png").is_file() and (report / "plots" / "summary" / "psnr.png").is_file()
+    # The suite's page: its tables, its plots inlined, and a link to each run's page.
+    page = (report / "report.html").read_text()
+    links = re.findall(r'href="([^"]+)"', page)
+    assert len(links) == 4 and all(link.endswith("/report.html") and (report / link).is_file() for link in links)
+    assert "<th>planner</th>" in page and page.count('src="data:image/png;base64,') == len(list(report.rglob("*.png")))
     assert all(set(c["per_seed"]) == {"0"} and c["per_seed"]["0"]["psnr@4"] == c["psnr@4"]["iqm"]
                for c in summary["cells"])
     # With rfe's run of one scene missing, the summary averages the other scene alone, as

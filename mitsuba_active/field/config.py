@@ -204,7 +204,7 @@ class FieldConfig:
     distance_weight: float = 0.0
     empty_weight: float = 0.0
     view_degree: int = 0
-    view_resolution: int = 32
+    view_resolution: int = 8
     occupancy_resolution: int = 0
     occupancy_threshold: float = 0.01
     occupancy_interval: int = 16

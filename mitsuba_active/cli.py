@@ -540,9 +540,9 @@ def _plan(cfg, out: Path, quiet: bool, given=frozenset(), notes=()) -> dict:
               help="Dataset folder [RUN_DIR/export].")
 @_one_line_errors
 def export(run_dir, out):
-    """Export a run's chosen views as a transforms.json dataset.
+    """Export a run's chosen and held-out views as a transforms.json dataset.
 
-    The dataset reads in nerfstudio and instant-ngp.
+    The dataset reads in nerfstudio and instant-ngp, split as the run was.
     """
     from .export import export_transforms
 

@@ -20,6 +20,7 @@ import numpy as np
 from .cameras import MITSUBA_TO_OPENCV, rigid_pose
 from .checks import is_whole
 from .errors import UserError
+from .transforms import CAMERA_KEYS
 
 #: The sparse model's folder in a project, and the files it must hold (``.bin`` or ``.txt``).
 SPARSE = Path("sparse") / "0"
@@ -114,8 +115,6 @@ def frames_from_reconstruction(rec, images: Path, where: str):
 
 def camera_keys(model: str, params: list, width: int, height: int, where: str) -> dict:
     """The transforms.json camera keys (``fl_x``, ``cx``, ``k1``, ``camera_model``, ...) of a COLMAP camera."""
-    from .datasets import CAMERA_KEYS
-
     if model not in CAMERA_MODELS:
         raise UserError(f"{where}: COLMAP camera model {model} is not supported "
                         f"(supported: {', '.join(CAMERA_MODELS)})")

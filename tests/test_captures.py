@@ -263,6 +263,90 @@ def test_a_colmap_opencv_camera_is_undistorted(tmp_path, renders):
     assert fr.lens is not None and psnr(src.heldout_view(0).rgb[hit], views[2].rgb[y0:y0 + h, x0:x0 + w][hit]) > 26
 
 
+def test_a_colmap_binary_model_reads_as_its_text_model(tmp_path, renders):
+    import pycolmap
+
+    views, f = renders
+    write_colmap(tmp_path / "text", views, f, model="SIMPLE_RADIAL", params=[f, SIZE / 2, SIZE / 2, -0.2],
+                 points=np.random.default_rng(0).uniform(-0.4, 0.4, (50, 3)))
+    binary = tmp_path / "binary"
+    (binary / "sparse" / "0").mkdir(parents=True)
+    pycolmap.Reconstruction(str(tmp_path / "text" / "sparse" / "0")).write_binary(str(binary / "sparse" / "0"))
+    written = {p.name for p in (binary / "sparse" / "0").iterdir()}
+    assert {"cameras.bin", "images.bin", "points3D.bin"} <= written and not any(".txt" in n for n in written)
+    (binary / "images").symlink_to(tmp_path / "text" / "images")
+    text, binary = (open_source(tmp_path / d, n_candidates=None, n_heldout=2, downscale=1, cache_dir=False)
+                    for d in ("text", "binary"))
+    assert text.candidate_files == binary.candidate_files and text.heldout_files == binary.heldout_files
+    for a, b in zip(text.candidate_frames + text.heldout_frames, binary.candidate_frames + binary.heldout_frames):
+        assert np.allclose(a.camera.to_world, b.camera.to_world, atol=1e-9) and a.camera.fov == b.camera.fov
+        assert a.lens == b.lens and a.lens.coeffs[0] == -0.2 and a.crop == b.crop
+    assert np.allclose(text.bbox_min, binary.bbox_min) and np.allclose(text.bbox_max, binary.bbox_max)
+    assert np.array_equal(text.heldout_view(1).rgb, binary.heldout_view(1).rgb)
+
+
+@pytest.mark.parametrize("model,params,expected", [
+    ("SIMPLE_PINHOLE", [70.0, 48.0, 47.0],
+     {"camera_model": "PINHOLE", "fl_x": 70.0, "fl_y": 70.0, "cx": 48.0, "cy": 47.0}),
+    ("SIMPLE_RADIAL", [70.0, 48.0, 47.0, -0.3],
+     {"camera_model": "OPENCV", "fl_x": 70.0, "fl_y": 70.0, "cx": 48.0, "cy": 47.0, "k1": -0.3}),
+    ("RADIAL", [70.0, 48.0, 47.0, -0.3, 0.1],
+     {"camera_model": "OPENCV", "fl_x": 70.0, "fl_y": 70.0, "cx": 48.0, "cy": 47.0, "k1": -0.3, "k2": 0.1}),
+    ("OPENCV_FISHEYE", [70.0, 70.0, 48.0, 47.0, -0.4, 0.1, -0.02, 0.004],
+     {"camera_model": "OPENCV_FISHEYE", "fl_x": 70.0, "fl_y": 70.0, "cx": 48.0, "cy": 47.0, "k1": -0.4,
+      "k2": 0.1, "k3": -0.02, "k4": 0.004}),
+])
+def test_colmap_camera_models_give_their_intrinsics_and_lens(tmp_path, renders, model, params, expected):
+    from mitsuba_active.colmap import camera_keys
+
+    keys = camera_keys(model, params, SIZE, SIZE, "here")
+    assert {k: v for k, v in keys.items() if v is not None} == {**expected, "w": SIZE, "h": SIZE}
+    # One project per model: its frames carry that lens (a pinhole's none) and focal length.
+    views, f = renders
+    write_colmap(tmp_path / "proj", views, f, model=model, params=params, points=np.zeros((0, 3)))
+    src = open_source(tmp_path / "proj", n_candidates=None, n_heldout=2, downscale=1, cache_dir=False)
+    fr = src.heldout_frames[0]
+    coeffs = tuple(expected.get(k, 0.0) for k in ("k1", "k2", "k3", "k4", "p1", "p2"))
+    if model == "SIMPLE_PINHOLE":
+        assert fr.lens is None
+    else:
+        lens_model = "OPENCV_FISHEYE" if model == "OPENCV_FISHEYE" else "OPENCV"
+        assert (fr.lens.model, fr.lens.coeffs, fr.lens.fx, fr.lens.cx, fr.lens.cy) == (lens_model, coeffs, 70.0,
+                                                                                       48.0, 47.0)
+    x0, y0, w, h = fr.crop
+    assert fr.camera.fov == pytest.approx(math.degrees(2 * math.atan(w / 2 / 70.0)))
+    assert (x0 + w / 2, y0 + h / 2) == (48.0, 47.0)  # the window is centred on the principal point
+
+
+def test_the_export_of_a_distorted_capture_keeps_its_lens(tmp_path, renders, monkeypatch):
+    """The export's images are the undistorted views the run used (no distortion); each frame keeps
+    the source image and its lens; the export reads back with the run's split."""
+    from mitsuba_active.export import export_transforms
+    from mitsuba_active.run import Run, RunConfig
+
+    monkeypatch.setenv("MITSUBA_ACTIVE_CACHE", str(tmp_path / "cache"))
+    views, f = renders
+    write_capture(tmp_path / "cap", views, f, "OPENCV", RADTAN, per_frame=False)
+    cfg = RunConfig(scene=str(tmp_path / "cap"), planner="even", budget=2, initial_views=1, resolution=24,
+                    candidates=6, heldout=2, eval_views=[2], eval_steps=5, initial_steps=5, steps_per_view=5)
+    src = cfg.open_source()
+    rec = Run(src, cfg, tmp_path / "run", progress=False, log=lambda m: None).execute()
+    path = export_transforms(tmp_path / "run", tmp_path / "ds")
+    meta = json.loads(path.read_text())
+    assert [meta[k] for k in ("k1", "k2", "p1", "p2")] == [0.0] * 4 and meta["w"] == src.candidates[0].width
+    frames = src.candidate_frames
+    for frame, fr in zip(meta["frames"], [frames[i] for i in rec["captured"]] + src.heldout_frames):
+        lens = frame["source_camera"]
+        assert {k: lens[k] for k in RADTAN} == RADTAN and lens["camera_model"] == "OPENCV"
+        assert (lens["fl_x"], lens["cx"], lens["w"], lens["h"]) == (f, SIZE / 2, SIZE, SIZE)
+        assert tmp_path / "cap" / frame["source_file_path"] == fr.image
+        assert "mask_path" not in frame  # the capture's images have no alpha
+    back = open_source(tmp_path / "ds", resolution=24, cache_dir=False)
+    assert np.allclose([c.to_world for c in back.heldout], [c.to_world for c in src.heldout])
+    assert back.heldout[0].fov == pytest.approx(src.heldout[0].fov, abs=1e-6)
+    assert np.abs(back.heldout_view(0).rgb - src.heldout_view(0).rgb).max() <= 1 / 255
+
+
 def _unsupported_model(root, views, f):
     write_colmap(root, views, f, model="FOV", params=[f, f, SIZE / 2, SIZE / 2, 0.1], points=np.zeros((0, 3)))
 

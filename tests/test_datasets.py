@@ -601,8 +601,17 @@ def test_a_run_of_a_dataset_without_depth_exports_no_distances(tmp_path, mic_dir
     assert rec["distances"] is False
     assert set(read_exr(tmp_path / "run" / "views" / "view_000.exr")) == {"RGB"}
     meta = json.loads(export_transforms(tmp_path / "run", tmp_path / "export").read_text())
-    assert len(meta["frames"]) == 3 and not any("distance_file_path" in f for f in meta["frames"])
+    assert len(meta["frames"]) == 3 + 2 and not any("distance_file_path" in f for f in meta["frames"])
     assert "distance_note" not in meta and not (tmp_path / "export" / "distance").exists()
+    # The held-out frames are the dataset's test frames; every mask is the image's alpha.
+    held = meta["frames"][3:]
+    assert [f["source_file_path"] for f in held] == rec["heldout_files"]
+    for frame, view in zip(meta["frames"], [src.candidate_view(i) for i in rec["captured"]]
+                           + [src.heldout_view(i) for i in range(2)]):
+        image = iio.imread(tmp_path / "export" / frame["file_path"]) / 255
+        assert np.abs(image - view.rgb).max() <= 1 / 255
+        assert np.array_equal(iio.imread(tmp_path / "export" / frame["mask_path"]) > 127, ~view.known_empty)
+        assert "source_camera" not in frame  # mic's images are pinholes: nothing was undistorted
     # Which of the dataset's frames each view is: the file the dataset's JSON gives that pose.
     poses = {str(mic_dir / (f["file_path"] + ".png")): np.asarray(f["transform_matrix"])
              for f in json.loads((mic_dir / "transforms_train.json").read_text())["frames"]}

@@ -4,6 +4,7 @@ import dataclasses
 import json
 import re
 
+import imageio.v3 as iio
 import numpy as np
 import pytest
 from click.testing import CliRunner
@@ -239,23 +240,45 @@ def test_ensemble_size_counts_only_where_a_planner_trains_one(source, tmp_path):
 def test_export_round_trips_poses(source, tmp_path):
     rec = _run(source, tmp_path / "r", planner="coverage")
     path = export_transforms(tmp_path / "r", tmp_path / "ds")
-    data = json.loads(path.read_text())
+    data = json.loads((tmp_path / "ds" / "transforms_train.json").read_text())
     assert len(data["frames"]) == 4 and data["w"] == 16 and "camera_angle_x" in data
     for frame, index in zip(data["frames"], rec["captured"]):
+        assert frame["candidate"] == index
         assert np.allclose(opengl_to_mitsuba(frame["transform_matrix"]), source.candidates[index].to_world)
     gl = np.array(data["frames"][0]["transform_matrix"])
     cam = source.candidates[rec["captured"][0]]
     assert np.allclose(-gl[:3, 2], cam.forward)  # OpenGL cameras look along -Z
     assert (tmp_path / "ds" / data["frames"][0]["file_path"]).is_file()
     assert (tmp_path / "ds" / data["frames"][0]["distance_file_path"]).is_file()
+    # The held-out views, with their ground truth; transforms.json holds both, split by nerfstudio's lists.
+    test = json.loads((tmp_path / "ds" / "transforms_test.json").read_text())["frames"]
+    assert [f["heldout"] for f in test] == [0, 1, 2]
+    both = json.loads(path.read_text())
+    assert both["frames"] == data["frames"] + test
+    assert both["train_filenames"] == [f["file_path"] for f in data["frames"]]
+    assert both["test_filenames"] == both["val_filenames"] == [f["file_path"] for f in test]
+    for i, frame in enumerate(test):
+        gt = source.heldout_view(i)
+        assert np.allclose(opengl_to_mitsuba(frame["transform_matrix"]), gt.camera.to_world)
+        assert np.abs(iio.imread(tmp_path / "ds" / frame["file_path"]) / 255 - gt.rgb).max() <= 1 / 255
+        # The mask is the ground truth's hit mask, white where it sees geometry.
+        assert np.array_equal(iio.imread(tmp_path / "ds" / frame["mask_path"]) > 127, gt.mask)
+        assert 0 < gt.mask.mean() < 1
+    # The same split reads back: the chosen views are the candidates, the held-out views held out.
+    from mitsuba_active.datasets import DatasetSource
+
+    for opened in (tmp_path / "ds", path):
+        back = DatasetSource.from_path(opened)
+        assert np.allclose([c.to_world for c in back.heldout], [c.to_world for c in source.heldout])
+        assert np.allclose([c.to_world for c in back.candidates],
+                           [source.candidates[i].to_world for i in rec["captured"]])
+        assert np.allclose(back.heldout_view(1).rgb, source.heldout_view(1).rgb, atol=1 / 255)
     # An unfinished run exports what it has, and says so.
     rec_path = tmp_path / "r" / "run.json"
     rec_path.write_text(json.dumps({**rec, "finished": False}))
     with pytest.warns(UserWarning, match="unfinished run: exporting the 4 of 4 views"):
         export_transforms(tmp_path / "r", tmp_path / "ds2")
     # The scene's bounds travel with it: the export reads back with the scene's box, not an estimate.
-    from mitsuba_active.datasets import DatasetSource
-
     exported = DatasetSource.from_path(path)
     assert np.allclose(exported.bbox_min, source.bbox_min) and np.allclose(exported.bbox_max, source.bbox_max)
     # Exporting fewer views into the same folder leaves none of the earlier ones behind.
@@ -265,9 +288,29 @@ def test_export_round_trips_poses(source, tmp_path):
                                     "metrics": [m for m in rec["metrics"] if m["views"] <= 2]}))
     with pytest.warns(UserWarning, match="exporting the 2 of 4 views"):
         export_transforms(tmp_path / "r", tmp_path / "ds")
-    assert sorted(p.name for p in (tmp_path / "ds").rglob("view_*")) == [
-        "view_000.exr", "view_000.png", "view_001.exr", "view_001.png"]
+    assert sorted(p.relative_to(tmp_path / "ds").as_posix() for p in (tmp_path / "ds").rglob("view_*")) == [
+        "distance/view_000.exr", "distance/view_001.exr", "images/view_000.png", "images/view_001.png",
+        "masks/view_000.png", "masks/view_001.png"]
     assert (tmp_path / "ds" / "notes.txt").read_text() == "mine"
+
+
+def test_an_unfinished_run_exports_held_out_views_rendered_again(source, tmp_path, monkeypatch):
+    """A run that has not written its held-out ground truth: the export renders it through the scene."""
+    import shutil
+
+    monkeypatch.setenv("MITSUBA_ACTIVE_CACHE", str(tmp_path / "cache"))
+
+    rec = _run(source, tmp_path / "r", planner="even", budget=2, eval_views=[2])
+    shutil.rmtree(tmp_path / "r" / "heldout")
+    (tmp_path / "r" / "run.json").write_text(json.dumps({**rec, "finished": False}))
+    with pytest.warns(UserWarning, match="unfinished run"):
+        export_transforms(tmp_path / "r", tmp_path / "ds")
+    test = json.loads((tmp_path / "ds" / "transforms_test.json").read_text())["frames"]
+    assert len(test) == len(source.heldout)
+    for i, frame in enumerate(test):
+        gt = source.heldout_view(i)
+        assert np.abs(iio.imread(tmp_path / "ds" / frame["file_path"]) / 255 - gt.rgb).max() <= 1 / 255
+        assert np.array_equal(iio.imread(tmp_path / "ds" / frame["mask_path"]) > 127, gt.mask)
 
 
 def test_a_failed_export_leaves_the_earlier_one_whole(source, tmp_path, monkeypatch):
@@ -307,8 +350,9 @@ def test_export_keeps_each_cameras_field_of_view(tmp_path):
     source = cfg.open_source(cache_dir=False)
     Run(source, cfg, tmp_path / "r", progress=False, log=lambda m: None).execute()
     exported = DatasetSource.from_path(export_transforms(tmp_path / "r", tmp_path / "ds"))
-    fovs = sorted(c.fov for c in exported.candidates + exported.heldout)
+    fovs = sorted(c.fov for c in exported.candidates)
     assert fovs == pytest.approx(sorted(c.fov for c in source.candidates), abs=1e-4) and fovs[0] != fovs[1]
+    assert [c.fov for c in exported.heldout] == pytest.approx([c.fov for c in source.heldout], abs=1e-4)
 
 
 def test_rfe_prefers_the_unseen_side(sphere_xml, tmp_path):

@@ -31,7 +31,6 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import mitsuba_active  # noqa: E402,F401
-import cv2  # noqa: E402
 import imageio.v3 as iio  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -39,6 +38,7 @@ from mitsuba_active.datasets import DatasetSource, mitsuba_to_opengl  # noqa: E4
 from mitsuba_active.env import SceneSource  # noqa: E402
 from mitsuba_active.field import Ensemble, FieldConfig  # noqa: E402
 from mitsuba_active.field.config import FIELD_PRESETS  # noqa: E402
+from mitsuba_active.lens import capture_through  # noqa: E402
 from mitsuba_active.training import score_views, train_on  # noqa: E402
 from mitsuba_active.scene import scene_from_mesh  # noqa: E402
 
@@ -50,24 +50,6 @@ LENSES = {"none": ("OPENCV", {}),
           "fisheye": ("OPENCV_FISHEYE", {"k1": -0.4, "k2": 0.1, "k3": -0.02, "k4": 0.004})}
 
 
-def distorted(img: np.ndarray, f: float, model: str, coeffs: dict) -> np.ndarray:
-    """(H, W, 3) float ``img`` as a lens with ``coeffs`` (OpenCV's model, principal point at the centre)
-    would have captured it."""
-    if not coeffs:
-        return img
-    h, w = img.shape[:2]
-    k = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]])
-    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    pts = np.stack([u, v], -1).reshape(-1, 1, 2)
-    if model == "OPENCV_FISHEYE":
-        und = cv2.fisheye.undistortPoints(pts, k, np.array([coeffs[c] for c in ("k1", "k2", "k3", "k4")]))
-    else:
-        d = np.array([coeffs.get(c, 0.0) for c in ("k1", "k2", "p1", "p2", "k3")])
-        und = cv2.undistortPoints(pts, k, d, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12))
-    und = und.reshape(h, w, 2)
-    mx = (und[..., 0] * f + w / 2 - 0.5).astype(np.float32)
-    my = (und[..., 1] * f + h / 2 - 0.5).astype(np.float32)
-    return cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
 
 
 def write_dataset(root: Path, train, test, bbox, model: str, coeffs: dict) -> None:
@@ -78,7 +60,8 @@ def write_dataset(root: Path, train, test, bbox, model: str, coeffs: dict) -> No
     frames = []
     for n, v in enumerate(train + test):
         name = f"images/{n:03d}.png"
-        iio.imwrite(root / name, np.round(np.clip(distorted(v.rgb, f, model, coeffs), 0, 1) * 255).astype(np.uint8))
+        image = np.clip(capture_through(v.rgb, f, model, coeffs), 0, 1)
+        iio.imwrite(root / name, np.round(image * 255).astype(np.uint8))
         frames.append({"file_path": name, "transform_matrix": mitsuba_to_opengl(v.camera.to_world).tolist(),
                        "split": "train" if n < len(train) else "test"})
     meta = {"camera_model": model, "fl_x": f, "fl_y": f, "cx": cam.width / 2, "cy": cam.height / 2,

@@ -160,3 +160,26 @@ def remap(lens: Lens, img: np.ndarray, nearest: bool = False) -> np.ndarray:
     out = cv2.remap(np.ascontiguousarray(img, dtype=np.float32), map_x, map_y, flags,
                     borderMode=cv2.BORDER_REPLICATE)
     return out.reshape(img.shape)
+
+
+def capture_through(img: np.ndarray, f: float, model: str, coeffs: dict) -> np.ndarray:
+    """(H, W, C) float ``img`` of a pinhole camera (focal ``f`` pixels, principal point at the
+    centre) as a lens with ``coeffs`` (OpenCV's own model and functions, ``model`` ``OPENCV`` or
+    ``OPENCV_FISHEYE``) would have captured it: to make distorted captures with a known lens."""
+    import cv2
+
+    if not coeffs:
+        return img
+    h, w = img.shape[:2]
+    k = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]])
+    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
+    pts = np.stack([u, v], -1).reshape(-1, 1, 2)
+    if model == FISHEYE:
+        und = cv2.fisheye.undistortPoints(pts, k, np.array([coeffs.get(c, 0.0) for c in ("k1", "k2", "k3", "k4")]))
+    else:
+        d = np.array([coeffs.get(c, 0.0) for c in ("k1", "k2", "p1", "p2", "k3")])
+        und = cv2.undistortPoints(pts, k, d, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12))
+    und = und.reshape(h, w, 2)
+    mx = (und[..., 0] * f + w / 2 - 0.5).astype(np.float32)
+    my = (und[..., 1] * f + h / 2 - 0.5).astype(np.float32)
+    return cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)

@@ -15,6 +15,7 @@ from mitsuba_active.colmap import BOUNDS_PERCENTILES
 from mitsuba_active.datasets import DatasetSource, mitsuba_to_opengl, open_source
 from mitsuba_active.errors import UserError
 from mitsuba_active.imageio_utils import linear_to_srgb, srgb_to_linear
+from mitsuba_active.lens import capture_through
 
 from .conftest import tiny_source
 from .test_datasets import write_dataset
@@ -32,22 +33,6 @@ def renders(spot_xml):
     return views, float(views[0].camera.intrinsics()[0, 0])
 
 
-def distorted(img, f, model, coeffs):
-    """``img`` (H, W, 3) float as a lens with ``coeffs`` (OpenCV's own model) would have captured it."""
-    h, w = img.shape[:2]
-    k = np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]])
-    u, v = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    pts = np.stack([u, v], -1).reshape(-1, 1, 2)
-    if model == "OPENCV_FISHEYE":
-        d = np.array([coeffs[c] for c in ("k1", "k2", "k3", "k4")])
-        und = cv2.fisheye.undistortPoints(pts, k, d)
-    else:
-        d = np.array([coeffs.get(c, 0.0) for c in ("k1", "k2", "p1", "p2", "k3")])
-        und = cv2.undistortPoints(pts, k, d, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12))
-    und = und.reshape(h, w, 2)
-    mx = (und[..., 0] * f + w / 2 - 0.5).astype(np.float32)
-    my = (und[..., 1] * f + h / 2 - 0.5).astype(np.float32)
-    return cv2.remap(img.astype(np.float32), mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
 
 
 def psnr(a, b):
@@ -60,7 +45,8 @@ def write_capture(root, views, f, model, coeffs, per_frame):
     frames = []
     for n, v in enumerate(views):
         name = f"images/{n:03d}.png"
-        iio.imwrite(root / name, np.round(np.clip(distorted(v.rgb, f, model, coeffs), 0, 1) * 255).astype(np.uint8))
+        image = np.clip(capture_through(v.rgb, f, model, coeffs), 0, 1)
+        iio.imwrite(root / name, np.round(image * 255).astype(np.uint8))
         frame = {"file_path": name, "transform_matrix": mitsuba_to_opengl(v.camera.to_world).tolist(),
                  "split": "test" if n >= 6 else "train"}
         frames.append({**frame, **(coeffs if per_frame else {}), "camera_model": model} if per_frame else frame)
@@ -255,7 +241,7 @@ def test_a_colmap_opencv_camera_is_undistorted(tmp_path, renders):
                  points=np.zeros((0, 3)))
     for n, v in enumerate(views):
         iio.imwrite(tmp_path / "proj" / "images" / f"v{n:02d}.png",
-                    np.round(np.clip(distorted(v.rgb, f, "OPENCV", RADTAN), 0, 1) * 255).astype(np.uint8))
+                    np.round(np.clip(capture_through(v.rgb, f, "OPENCV", RADTAN), 0, 1) * 255).astype(np.uint8))
     src = open_source(tmp_path / "proj", n_candidates=None, n_heldout=2, downscale=1, cache_dir=False)
     fr = src.heldout_frames[0]
     x0, y0, w, h = fr.crop

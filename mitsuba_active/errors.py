@@ -53,3 +53,10 @@ def first_line(exc: BaseException) -> str:
     """The first line of an exception's message (its type's name when it has none):
     what a library reports about a file it cannot read may run over many lines."""
     return (str(exc).splitlines() or [type(exc).__name__])[0]
+
+
+def brief(exc) -> str:
+    """An exception's message on one line, cut to 300 characters: what a library
+    says of a file it cannot load, quoted in a message of ours."""
+    text = " ".join(str(exc).split())
+    return text if len(text) <= 300 else text[:297] + "..."

@@ -330,11 +330,11 @@ def _inputs(job, bundles: dict, ray) -> tuple:
     files (its XML and the files it names, below their common folder), a
     planner file of the user's own, and the files the run folder holds."""
     from .planners.base import is_planner_file
-    from .scene import _referenced_files
+    from .scene import referenced_files
 
     xml = Path(job.scene_xml)
     if job.scene_xml not in bundles:
-        files = [xml.resolve(), *(p.resolve() for p in _referenced_files(xml))]
+        files = [xml.resolve(), *(p.resolve() for p in referenced_files(xml))]
         root = Path(os.path.commonpath([p.parent for p in files]))
         bundles[job.scene_xml] = ray.put({"xml": str(xml.resolve().relative_to(root)),
                                           "files": _read_tree(root, files)})

@@ -243,14 +243,14 @@ def test_texture_that_is_not_an_image(tmp_path, shared_data, out, texture, needl
 
 
 def test_a_scene_mitsuba_refuses_leaves_no_folders(tmp_path, shared_data, monkeypatch):
-    import mitsuba_active.scene as scene_module
+    import mitsuba_active.scene.authoring as authoring
 
     def refuse(path, **params):
         raise UserError(f"Mitsuba cannot load {path}")
 
-    monkeypatch.setattr(scene_module, "_load_mitsuba", refuse)
+    monkeypatch.setattr(authoring, "load_mitsuba", refuse)
     with pytest.raises(UserError, match="cannot load"):
-        scene_module.scene_from_mesh(shared_data / "meshes" / "spot.obj", tmp_path / "a" / "b" / "s.xml")
+        authoring.scene_from_mesh(shared_data / "meshes" / "spot.obj", tmp_path / "a" / "b" / "s.xml")
     assert list(tmp_path.iterdir()) == []
 
 

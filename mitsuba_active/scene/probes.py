@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .cameras import fibonacci_directions
+from ..cameras import fibonacci_directions
 
 #: Rays cast from each probe point, spread evenly over the sphere.
 PROBE_RAYS = 512

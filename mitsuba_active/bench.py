@@ -67,7 +67,11 @@ BASELINES = ("random", "even")
 TIE = 1e-6
 #: Metrics of the tables: title, and whether higher values are better.
 METRICS = {"psnr": ("Photometric held-out PSNR (dB)", True),
+           "psnr_fg": ("Foreground held-out PSNR (dB)", True),
            "distance_error": ("Distance error (%)", False)}
+#: Metrics of the plots, and those of the summary plot over scenes.
+PLOTTED = ("psnr", "psnr_fg", "ssim", "distance_error", "floor_psnr", "floor_psnr_fg")
+SUMMARY_PLOTTED = ("psnr", "psnr_fg", "floor_psnr", "floor_psnr_fg")
 #: RunConfig fields that each job sets itself (from the suite and --seeds).
 JOB_KEYS = ("scene", "planner", "seed")
 #: RunConfig fields that are tables: settings merge into them key by key.
@@ -662,7 +666,7 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
     ``overrides`` (the command line's ``--set``) are recorded in ``results.json``.
     With no finished run, nothing is written (an earlier report stays)."""
     from .report import plot_metrics
-    from .run import fit_too_short
+    from .training import weak_evaluation
 
     data = collect(jobs)
     scenes = [s.name for s in suite.scenes if s.name in data]
@@ -672,8 +676,8 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
     summary = {"suite": suite.name, "profile": profile, "overrides": overrides or {},
                "table_views": list(views), "runs": len(jobs), "runs_reported": len(reported),
                "unreported_seeds": unreported_seeds(jobs),
-               # Runs whose evaluation fields had too few steps to fit their own views.
-               "short_training": sum(any(fit_too_short(m) for m in r["metrics"]) for r in reported),
+               # Runs whose evaluation fields scored near the background alone, or barely fit their own views.
+               "short_training": sum(any(weak_evaluation(m) for m in r["metrics"]) for r in reported),
                # Finished runs are kept across upgrades: which versions made the reported ones.
                "versions": [json.loads(v) for v in sorted({json.dumps(r.get("versions"), sort_keys=True)
                                                            for r in reported})],
@@ -723,7 +727,7 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
                 rows, lo, hi = [], {}, {}
                 for c in counts:
                     row = {"views": c}
-                    for metric in ("psnr", "ssim", "distance_error"):
+                    for metric in PLOTTED:
                         s = summarize([metric_at(r, metric, c) for r in recs])
                         row[metric] = s["iqm"]
                         if s["iqm"] is not None:
@@ -733,14 +737,22 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
                 series[planner] = rows
                 bands[planner] = {m: (lo[m], hi[m]) for m in lo if len(lo[m]) == len(counts)}
                 for row in rows:
-                    if row["psnr"] is not None and scene in shared:
-                        overall.setdefault(planner, {}).setdefault(row["views"], []).append(row["psnr"])
+                    for metric in SUMMARY_PLOTTED:
+                        if row[metric] is not None and scene in shared:
+                            by_count = overall.setdefault(planner, {}).setdefault(metric, {})
+                            by_count.setdefault(row["views"], []).append(row[metric])
             scene_plots = folder / "plots" / scene
             scene_plots.mkdir(parents=True, exist_ok=True)
             plot_metrics(series, scene_plots, title=scene, bands=bands, colors=colors)
         # A point of the summary is a mean over all of its scenes, never over some.
-        mean_series = {p: [{"views": v, "psnr": float(np.mean(x))} for v, x in sorted(d.items())
-                           if len(x) == len(shared)] for p, d in overall.items()}
+        mean_series = {}
+        for p, by_metric in overall.items():
+            points: dict = {}
+            for metric, by_count in by_metric.items():
+                for v, x in by_count.items():
+                    if len(x) == len(shared):
+                        points.setdefault(v, {"views": v})[metric] = float(np.mean(x))
+            mean_series[p] = [points[v] for v in sorted(points)]
         if any(mean_series.values()):
             (folder / "plots" / SUMMARY).mkdir(parents=True, exist_ok=True)
             plot_metrics(mean_series, folder / "plots" / SUMMARY, colors=colors,

@@ -460,7 +460,8 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
             scene_path = cfg.scene = _author_into_run(scene_path, out)
             notes = authoring_notes(scene_path)
         record = _plan(cfg, out, quiet, given, notes)
-    rows = ", ".join(f"{m['views']}: {m['psnr']:.2f} dB" for m in record["metrics"])
+    rows = ", ".join(f"{m['views']}: {m['psnr']:.2f} dB (foreground "
+                     + ("n/a)" if m.get("psnr_fg") is None else f"{m['psnr_fg']:.2f} dB)") for m in record["metrics"])
     click.echo(f"held-out PSNR by views captured: {rows}")
     click.echo(f"results in {out}")
 
@@ -651,11 +652,12 @@ def bench(suite, out, profile, workers, executor, seeds, planners, scenes, field
             click.echo(f"note: the report covers {summary['runs_reported']} of the suite's {summary['runs']} runs; "
                        "the others have not finished with these settings and planner code", err=True)
         if summary["short_training"]:
-            from .run import FIT_GAIN_DB, MIN_FIT_PSNR
+            from .training import FIT_GAIN_DB, FLOOR_MARGIN_DB
 
-            click.echo(f"note: in {summary['short_training']} of the reported runs the evaluation field fits its own "
-                       f"training views below {MIN_FIT_PSNR:g} dB, or less than {FIT_GAIN_DB:g} dB better than "
-                       "at its first steps: raise eval_steps for scores that compare the planners", err=True)
+            click.echo(f"note: in {summary['short_training']} of the reported runs the evaluation field scores less "
+                       f"than {FLOOR_MARGIN_DB:g} dB above the background colour alone on the held-out views, or fits "
+                       f"its own training views less than {FIT_GAIN_DB:g} dB better than at its first steps: raise "
+                       "eval_steps for scores that compare the planners", err=True)
         if len(summary["versions"]) > 1:
             click.echo(f"note: the reported runs were made with {len(summary['versions'])} different versions of "
                        "mitsuba-active, Mitsuba or Dr.Jit (see versions in report/results.json)", err=True)

@@ -65,6 +65,16 @@ class View:
     background: tuple | None = None
 
     @property
+    def foreground(self) -> np.ndarray:
+        """(H, W) bool: the pixels that see geometry, whose colour the foreground PSNR scores.
+
+        The hits, and for a dataset's view every pixel its alpha covers (all of
+        them where its images have no alpha).
+        """
+        mask = np.asarray(self.mask, bool)
+        return mask if self.known_empty is None else mask | ~np.asarray(self.known_empty, bool)
+
+    @property
     def empty(self) -> np.ndarray:
         """(H, W) bool: the pixels known to see nothing, whose rays the empty-ray loss clears.
 

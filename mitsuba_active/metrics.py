@@ -12,7 +12,8 @@ import numpy as np
 
 #: Decimals that CSV files print each figure with (dB, SSIM, percent, seconds):
 #: runs under one seed agree to about 1e-6, and more digits would differ between them.
-DECIMALS = {"psnr": 4, "ssim": 4, "distance_error": 4, "fit_psnr": 4, "fit_start_psnr": 4, "eval_seconds": 3}
+DECIMALS = {"psnr": 4, "psnr_fg": 4, "ssim": 4, "distance_error": 4, "floor_psnr": 4, "floor_psnr_fg": 4,
+            "fit_psnr": 4, "fit_start_psnr": 4, "eval_seconds": 3}
 
 
 def fixed(value, decimals: int | None):
@@ -35,6 +36,54 @@ def psnr(pred: np.ndarray, target: np.ndarray) -> float:
     a, b = _same_shape(pred, target)
     mse = float(np.mean((a - b) ** 2))
     return float("inf") if mse == 0 else -10.0 * np.log10(mse)
+
+
+def foreground_radius(width: int) -> int:
+    """Pixels by which :func:`foreground_psnr` dilates the foreground of an image ``width`` pixels across.
+
+    A 64th of the width, at least one pixel: the band around a silhouette
+    covers the same part of the view at any resolution.
+    """
+    return max(1, round(width / 64))
+
+
+def dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """(H, W) bool ``mask`` grown by ``radius`` pixels in every direction (a square window)."""
+    m = np.asarray(mask, bool)
+    if m.ndim != 2:
+        raise ValueError(f"dilate: a mask is (H, W), got shape {m.shape}")
+    if isinstance(radius, bool) or not isinstance(radius, numbers.Integral) or radius < 0:
+        raise ValueError(f"dilate: the radius must be a whole number >= 0, got {radius!r}")
+    for axis in (0, 1):  # a square window is a row window after a column window
+        n = m.shape[axis]
+        padded = np.pad(m, [(radius, radius) if a == axis else (0, 0) for a in range(2)])
+        grown = np.zeros_like(m)
+        for k in range(2 * radius + 1):
+            grown |= np.take(padded, np.arange(k, k + n), axis=axis)
+        m = grown
+    return m
+
+
+def masked_psnr(pred: np.ndarray, target: np.ndarray, mask: np.ndarray) -> float:
+    """PSNR in dB over the pixels of the (H, W) bool ``mask`` of (H, W, 3) images in [0, 1] (NaN if none)."""
+    a, b = _same_shape(pred, target)
+    m = np.asarray(mask, bool)
+    if m.shape != a.shape[:2]:
+        raise ValueError(f"the mask is {m.shape}, the images {a.shape[:2]}")
+    if not m.any():
+        return float("nan")
+    mse = float(np.mean((a[m] - b[m]) ** 2))
+    return float("inf") if mse == 0 else -10.0 * np.log10(mse)
+
+
+def foreground_psnr(pred: np.ndarray, target: np.ndarray, foreground: np.ndarray) -> float:
+    """PSNR in dB over the pixels that see geometry in the ground truth (``foreground``, (H, W) bool),
+    dilated by :func:`foreground_radius`, so that geometry missing or added at the edges counts
+    while the background far from it does not (NaN if no pixel sees geometry)."""
+    fg = np.asarray(foreground, bool)
+    if fg.ndim != 2:
+        raise ValueError(f"the foreground is (H, W), got shape {fg.shape}")
+    return masked_psnr(pred, target, dilate(fg, foreground_radius(fg.shape[1])))
 
 
 def _gaussian_blur(img: np.ndarray, sigma=1.5, radius=5) -> np.ndarray:

@@ -27,8 +27,10 @@ def _save(fig, path) -> Path:
     return Path(path)
 
 
-METRIC_LABELS = {"psnr": "held-out PSNR (dB)", "ssim": "held-out SSIM",
-                 "distance_error": "distance error (%)"}
+METRIC_LABELS = {"psnr": "held-out PSNR (dB)", "psnr_fg": "held-out foreground PSNR (dB)",
+                 "ssim": "held-out SSIM", "distance_error": "distance error (%)"}
+#: Records' scores of the trivial prediction (the background colour alone), drawn in their metric's plot.
+FLOORS = {"psnr": "floor_psnr", "psnr_fg": "floor_psnr_fg"}
 
 
 def plot_metrics(series: dict[str, list[dict]], out_dir, title: str = "", bands: dict | None = None,
@@ -37,7 +39,9 @@ def plot_metrics(series: dict[str, list[dict]], out_dir, title: str = "", bands:
 
     Args:
         series: planner name -> list of metric records (``views``, ``psnr``, ...).
-        out_dir: folder for ``psnr.png``, ``distance_error.png`` and ``ssim.png``.
+        out_dir: folder for ``psnr.png``, ``psnr_fg.png``, ``distance_error.png`` and ``ssim.png``
+            (the PSNRs with a dashed line of the background colour alone where records have it:
+            the first planner's, as every planner is scored on the same held-out views).
         bands: optional planner name -> metric -> (lower, upper) arrays to shade.
         colors: optional planner name -> Matplotlib colour, so that a planner
             keeps its colour across plots (default: the colour cycle).
@@ -60,6 +64,12 @@ def plot_metrics(series: dict[str, list[dict]], out_dir, title: str = "", bands:
         if not plotted:
             plt.close(fig)
             continue
+        floors = ([(r["views"], r[FLOORS[metric]]) for r in records if r.get(FLOORS[metric]) is not None]
+                  for records in series.values() if metric in FLOORS)
+        floor = next((points for points in floors if points), [])
+        if floor:
+            x, y = np.array(floor, dtype=float).T
+            ax.plot(x, y, ls="--", color="0.5", label="background alone")
         ax.set_xlabel("views captured")
         ax.xaxis.set_major_locator(plt.MaxNLocator(integer=True))
         ax.set_ylabel(label)

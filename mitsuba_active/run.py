@@ -8,7 +8,8 @@ until ``budget`` views are captured.
 Evaluation follows the seed paper: at each reported view count a *fresh*
 field, with the same architecture, seed and steps for every planner, is
 trained on the views chosen so far and scored on the held-out views (PSNR,
-SSIM, and mean relative distance error on pixels that hit geometry).
+PSNR of the foreground, SSIM, and mean relative distance error on pixels that
+hit geometry), beside the PSNRs of the background colour alone.
 
 A run writes everything into one folder and keeps ``run.json`` current
 after every round, so an interrupted run resumes where it stopped.
@@ -41,8 +42,8 @@ from .metrics import DECIMALS, fixed
 from .planners import PlanningState, make_planner
 from .planners.base import (is_planner_file, planner_digest, planner_folder, planner_label, planner_rng,
                              resolve_reference)
-from .training import (MAX_CANDIDATE_RAYS, PLANNER_INIT_SCALE, has_distances, predict_view, score_views,
-                       sparse_candidate_rays, train_on)
+from .training import (MAX_CANDIDATE_RAYS, PLANNER_INIT_SCALE, evaluation_note, has_distances, predict_view,
+                       score_views, scores_line, sparse_candidate_rays, train_on)
 from .webpage import REPORT_FILE, write_run_page
 
 RUN_FORMAT = 1
@@ -198,26 +199,10 @@ class RunConfig:
 #: Name of the planner's ensemble file in a run folder, after the views it was trained on.
 ENSEMBLE_FILE = re.compile(r"ensemble_\d{3,}\.npz")
 
-#: An evaluation field that fits its own training views below this PSNR (dB),
-#: or gained less than FIT_GAIN_DB over its training (its background starts
-#: at the empty pixels' colour, which alone may score 20 dB), has not trained
-#: long enough for its held-out scores to compare views: a run says so.
-MIN_FIT_PSNR = 20.0
-FIT_GAIN_DB = 3.0
-
 
 def loss_psnr(losses) -> float:
     """PSNR (dB) of a mean photometric MSE."""
     return float(-10.0 * np.log10(max(float(np.mean(losses)), 1e-10)))
-
-
-def fit_too_short(metrics: dict) -> bool:
-    """Whether an evaluation's field fit its training views too poorly to compare views by
-    (see MIN_FIT_PSNR); records from before ``fit_start_psnr`` have only the fixed bar."""
-    fit, start = metrics.get("fit_psnr"), metrics.get("fit_start_psnr")
-    if fit is None:
-        return False
-    return fit < MIN_FIT_PSNR or (start is not None and fit < start + FIT_GAIN_DB)
 
 
 #: Distance-loss weight that ``plan`` suggests for rooms seen from inside.
@@ -357,7 +342,8 @@ def read_record(path) -> dict:
     for m in rec["metrics"]:
         if not (isinstance(m, dict) and is_whole(m.get("views")) and is_number(m.get("psnr"))
                 and all(m.get(k) is None or is_number(m[k])
-                        for k in ("ssim", "distance_error", "fit_psnr", "fit_start_psnr"))):
+                        for k in ("psnr_fg", "ssim", "distance_error", "floor_psnr", "floor_psnr_fg", "fit_psnr",
+                                  "fit_start_psnr"))):
             raise damaged("an entry of its metrics is not the scores at a view count")
     counts = [m["views"] for m in rec["metrics"]]
     if counts != sorted(set(counts)) or not all(1 <= v <= len(captured) for v in counts):
@@ -484,9 +470,10 @@ def make_ensemble(source, cfg: RunConfig, n_members: int, seed: int, planner: bo
 def evaluate(source, views: list[View], cfg: RunConfig, progress: bool = False) -> tuple[dict, list[dict]]:
     """Train a fresh evaluation field on ``views``; score it on every held-out view.
 
-    Returns the metrics (means over held-out views; ``fit_psnr`` and
-    ``fit_start_psnr``: the field's PSNR on its own training rays over the
-    last and the first tenth of its training steps) and the per-view predictions.
+    Returns the metrics (means over held-out views, see
+    :func:`~.training.score_views`; ``fit_psnr`` and ``fit_start_psnr``: the
+    field's PSNR on its own training rays over the last and the first tenth of
+    its training steps) and the per-view predictions.
     """
     t0 = time.perf_counter()
     field_ = make_ensemble(source, cfg, 1, seed=cfg.seed + 7919, planner=False)
@@ -838,16 +825,11 @@ class Run:
                 self.record["metrics"].append(metrics)
                 self.record["metrics"].sort(key=lambda m: m["views"])
                 self._last_preds = preds
-                dist = "n/a" if metrics["distance_error"] is None else f"{metrics['distance_error']:.2f}%"
-                ssim_ = "n/a" if metrics["ssim"] is None else f"{metrics['ssim']:.3f}"
-                self.log(f"  {count:3d} views: PSNR {metrics['psnr']:.2f} dB, SSIM {ssim_}, distance error {dist}")
-                if fit_too_short(metrics) and not self._warned_fit:
+                self.log(f"  {count:3d} views: {scores_line(metrics)}")
+                note = evaluation_note(metrics, self.cfg.eval_steps, RunConfig.eval_steps)
+                if note and not self._warned_fit:
                     self._warned_fit = True  # once a run: the later evaluations train as long
-                    self.log(f"note: the evaluation field fits its own {count} training views to only "
-                             f"{metrics['fit_psnr']:.1f} dB after {self.cfg.eval_steps} steps (from "
-                             f"{metrics['fit_start_psnr']:.1f} dB at first): its held-out "
-                             "scores say more about the training than about the views; raise eval_steps "
-                             f"(RunConfig.eval_steps, plan --eval-steps; default {RunConfig.eval_steps})")
+                    self.log(note)
                 self._save_record()
 
     # -- results ------------------------------------------------------------
@@ -891,8 +873,10 @@ class Run:
 
 
 def write_metrics_csv(path, metrics: list[dict]) -> None:
-    """A run's metrics as CSV, one row per view count, each figure with its :data:`~.metrics.DECIMALS`."""
-    cols = ["views", "psnr", "ssim", "distance_error", "fit_psnr", "fit_start_psnr", "eval_seconds"]
+    """A run's metrics as CSV, one row per view count, each figure with its :data:`~.metrics.DECIMALS`
+    (empty where a record has none)."""
+    cols = ["views", "psnr", "psnr_fg", "ssim", "distance_error", "floor_psnr", "floor_psnr_fg", "fit_psnr",
+            "fit_start_psnr", "eval_seconds"]
     with atomic_write(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=cols, extrasaction="ignore")
         w.writeheader()

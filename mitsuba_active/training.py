@@ -15,7 +15,7 @@ from .cameras import camera_rays
 from .checks import is_whole
 from .errors import UserError
 from .groundtruth import View
-from .metrics import distance_error, psnr, ssim
+from .metrics import distance_error, foreground_psnr, psnr, ssim
 
 #: Most sparse rays scored per candidate view (images have at most 4096x4096
 #: pixels; a planner scores a sample of them).
@@ -25,6 +25,14 @@ MAX_CANDIDATE_RAYS = 65536
 #: their initialisation, and where no training ray reaches, that is all they
 #: have: a visible spread is what makes them disagree about unobserved space.
 PLANNER_INIT_SCALE = 2.0
+
+#: An evaluation field whose held-out PSNR is less than this (dB) above that
+#: of the background colour alone (:func:`background_colour`) has learnt too
+#: little of the scene for its scores to compare views: a run says so.
+FLOOR_MARGIN_DB = 3.0
+#: An evaluation field that fits its own training rays less than this (dB)
+#: better at the end of its training than at its start has barely trained.
+FIT_GAIN_DB = 3.0
 
 
 def has_distances(source) -> bool:
@@ -86,24 +94,106 @@ def predict_view(ens, camera) -> dict:
             "opacity": p["opacity"].reshape(h, w)}
 
 
+def background_colour(view: View) -> np.ndarray:
+    """(3,) float64 colour in [0, 1] of the trivial prediction of a view: its known background
+    (a dataset's), else the mean colour of its empty pixels (a rendered view's environment),
+    else white (a view that sees geometry everywhere)."""
+    if view.background is not None:
+        return np.asarray(view.background, np.float64)
+    empty = view.empty
+    if empty.any():
+        return np.asarray(view.rgb, np.float64)[empty].mean(axis=0)
+    return np.ones(3)
+
+
 def score_views(field_, views: Iterable[View]) -> tuple[dict, list[dict]]:
     """Score a field on ground-truth views (the held-out ones), taken one at a time.
 
-    Returns the means over the views, ``psnr`` (dB), ``ssim`` and
-    ``distance_error`` (%; None where no view can give one: SSIM needs 11x11
-    pixels, the distance error hits), and each view's :func:`predict_view`.
+    Returns the means over the views, ``psnr`` and ``psnr_fg`` (dB, the whole
+    image and its foreground: :func:`~.metrics.foreground_psnr` of
+    :attr:`View.foreground`), ``ssim`` and ``distance_error`` (%), and the same
+    PSNRs of the trivial prediction, each view's :func:`background_colour`
+    alone (``floor_psnr``, ``floor_psnr_fg``); None where no view can give one
+    (SSIM needs 11x11 pixels, the distance error hits, the foreground PSNR
+    geometry); and each view's :func:`predict_view`.
     """
-    preds, p_list, s_list, d_list = [], [], [], []
+    preds, scores = [], {k: [] for k in ("psnr", "psnr_fg", "ssim", "distance_error", "floor_psnr",
+                                         "floor_psnr_fg")}
     for gt in views:
         pred = predict_view(field_, gt.camera)
         preds.append(pred)
-        p_list.append(psnr(pred["rgb"], gt.rgb))
-        s_list.append(ssim(pred["rgb"], gt.rgb) if min(gt.rgb.shape[:2]) >= 11 else float("nan"))
-        d_list.append(distance_error(pred["distance"], gt.distance, gt.mask))
-    return {"psnr": float(np.mean(p_list)), "ssim": _mean_or_none(s_list),
-            "distance_error": _mean_or_none(d_list)}, preds
+        floor = np.broadcast_to(background_colour(gt), gt.rgb.shape)
+        scores["psnr"].append(psnr(pred["rgb"], gt.rgb))
+        scores["psnr_fg"].append(foreground_psnr(pred["rgb"], gt.rgb, gt.foreground))
+        scores["ssim"].append(ssim(pred["rgb"], gt.rgb) if min(gt.rgb.shape[:2]) >= 11 else float("nan"))
+        scores["distance_error"].append(distance_error(pred["distance"], gt.distance, gt.mask))
+        scores["floor_psnr"].append(psnr(floor, gt.rgb))
+        scores["floor_psnr_fg"].append(foreground_psnr(floor, gt.rgb, gt.foreground))
+    return {"psnr": float(np.mean(scores.pop("psnr"))), **{k: _mean_or_none(v) for k, v in scores.items()}}, preds
 
 
 def _mean_or_none(values) -> float | None:
-    """Mean of the finite values, or None when every value is NaN."""
+    """Mean of the values that are not NaN, or None when every value is NaN."""
     return None if np.isnan(values).all() else float(np.nanmean(values))
+
+
+def floor_comparison(metrics: dict) -> tuple[str, float, float] | None:
+    """What an evaluation's held-out scores compare with the trivial prediction on: ``("foreground
+    PSNR", psnr_fg, floor_psnr_fg)`` where both are finite, else ``("PSNR", psnr, floor_psnr)``; None
+    for a record from before floors, or a floor that is not finite (a view that is all background)."""
+    for what, key in (("foreground PSNR", "psnr_fg"), ("PSNR", "psnr")):
+        score, floor = metrics.get(key), metrics.get(f"floor_{key}")
+        if score is not None and floor is not None and np.isfinite(score) and np.isfinite(floor):
+            return what, float(score), float(floor)
+    return None
+
+
+def at_floor(metrics: dict) -> bool:
+    """Whether an evaluation's field scores less than FLOOR_MARGIN_DB above the background colour alone."""
+    found = floor_comparison(metrics)
+    return found is not None and found[1] < found[2] + FLOOR_MARGIN_DB
+
+
+def fit_too_short(metrics: dict) -> bool:
+    """Whether an evaluation's field fits its own training views less than FIT_GAIN_DB better
+    than at its first steps (records from before ``fit_start_psnr`` cannot tell)."""
+    fit, start = metrics.get("fit_psnr"), metrics.get("fit_start_psnr")
+    return fit is not None and start is not None and fit < start + FIT_GAIN_DB
+
+
+def weak_evaluation(metrics: dict) -> bool:
+    """Whether an evaluation's held-out scores say too little to compare views by
+    (:func:`at_floor` or :func:`fit_too_short`)."""
+    return at_floor(metrics) or fit_too_short(metrics)
+
+
+def scores_line(metrics: dict) -> str:
+    """An evaluation's held-out scores in words: PSNR, foreground PSNR, SSIM and distance error."""
+    def figure(key, text):
+        return "n/a" if metrics.get(key) is None else text.format(metrics[key])
+
+    return (f"PSNR {metrics['psnr']:.2f} dB, foreground PSNR {figure('psnr_fg', '{:.2f} dB')}, "
+            f"SSIM {figure('ssim', '{:.3f}')}, distance error {figure('distance_error', '{:.2f}%')}")
+
+
+def evaluation_note(metrics: dict, eval_steps: int, default_steps: int) -> str | None:
+    """The note a run logs on an evaluation whose field, trained ``eval_steps`` steps (the run's default:
+    ``default_steps``), is not clearly above the background colour alone (:func:`at_floor`), or barely
+    fit its own views (:func:`fit_too_short`); None for one that did neither."""
+    advice = f"raise eval_steps (RunConfig.eval_steps, plan --eval-steps; default {default_steps})"
+    short, fit = fit_too_short(metrics), metrics.get("fit_psnr")
+    if at_floor(metrics):
+        what, score, floor = floor_comparison(metrics)
+        note = (f"note: at {metrics['views']} views the evaluation field's held-out {what} is {score:.1f} dB, not "
+                f"{FLOOR_MARGIN_DB:g} dB above the background colour alone's ({floor:.1f} dB): its scores cannot "
+                "tell views apart")
+        if short:
+            return f"{note}; {advice}"
+        # A field that fits its own views has trained: its views are what it lacks.
+        return note + ("" if fit is None else f"; it fits its own training views to {fit:.1f} dB, so they show "
+                                              "too little of what the held-out views see")
+    if short:
+        return (f"note: the evaluation field fits its own {metrics['views']} training views to only "
+                f"{fit:.1f} dB after {eval_steps} steps (from {metrics['fit_start_psnr']:.1f} dB "
+                f"at first): its held-out scores say more about the training than about the views; {advice}")
+    return None

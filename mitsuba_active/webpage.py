@@ -27,8 +27,10 @@ REPORT_FILE = "report.html"
 #: JPEG quality of photographs (views, predictions) inlined into a page: a 20-view run at 128x128 stays small.
 JPEG_QUALITY = 88
 
-_METRIC_COLUMNS = [("views", "views"), ("psnr", "PSNR (dB)"), ("ssim", "SSIM"),
-                   ("distance_error", "distance error (%)"), ("fit_psnr", "fit PSNR (dB)"),
+_METRIC_COLUMNS = [("views", "views"), ("psnr", "PSNR (dB)"), ("psnr_fg", "foreground PSNR (dB)"), ("ssim", "SSIM"),
+                   ("distance_error", "distance error (%)"),
+                   ("floor_psnr", "background alone: PSNR (dB)"),
+                   ("floor_psnr_fg", "background alone: foreground PSNR (dB)"), ("fit_psnr", "fit PSNR (dB)"),
                    ("eval_seconds", "evaluation (s)")]
 
 

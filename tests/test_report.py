@@ -32,6 +32,26 @@ def test_camera_plot_of_a_run_with_repeats(tmp_path):
     assert plot_views(cams, [], [], [-0.5] * 3, [0.5] * 3, tmp_path / "empty.png").is_file()
 
 
+def test_metric_plots_draw_the_foreground_psnr_and_the_background_alone(tmp_path, monkeypatch):
+    import mitsuba_active.report as report
+
+    drawn, save = {}, report._save
+
+    def keep_lines(fig, path):
+        drawn[path.name] = [(line.get_label(), list(line.get_ydata())) for line in fig.axes[0].get_lines()]
+        return save(fig, path)
+
+    monkeypatch.setattr(report, "_save", keep_lines)
+    new = [{"views": v, "psnr": 20.0 + v, "psnr_fg": 10.0 + v, "floor_psnr": 19.0, "floor_psnr_fg": 8.0,
+            "ssim": None, "distance_error": 5.0} for v in (2, 4)]
+    old = [{"views": v, "psnr": 21.0, "ssim": None, "distance_error": None} for v in (2, 4)]  # from before floors
+    written = report.plot_metrics({"old": old, "new": new}, tmp_path)
+    assert sorted(p.name for p in written) == ["distance_error.png", "psnr.png", "psnr_fg.png"]
+    assert drawn["psnr.png"] == [("old", [21.0, 21.0]), ("new", [22.0, 24.0]), ("background alone", [19.0, 19.0])]
+    assert drawn["psnr_fg.png"] == [("new", [12.0, 14.0]), ("background alone", [8.0, 8.0])]
+    assert [label for label, _ in drawn["distance_error.png"]] == ["new"]
+
+
 def test_atomic_write_leaves_the_file_whole_or_absent(tmp_path):
     import os
 
@@ -117,10 +137,11 @@ def test_a_run_writes_one_offline_page_that_shows_its_cameras(tiny_run, browser,
     assert browser.evaluate(CANVAS_INK) > 0.002
     shot = iio.imread(browser.screenshot(tmp_path / "report.png"))
     assert shot.shape[0] > 100 and shot.std() > 10
-    # Every image is on the page: 4 captured views, 3 held-out views x 3, 3 plots.
+    # Every image is on the page: 4 captured views, 3 held-out views x 3, 4 plots (PSNR, foreground PSNR,
+    # SSIM, distance error).
     images = browser.evaluate("Array.from(document.images).filter(i => i.complete && i.naturalWidth > 0)"
                               ".map(i => i.src.slice(0, 11))")
-    assert len(images) == 4 + 3 * 3 + 3 and set(images) == {"data:image/"}
+    assert len(images) == 4 + 3 * 3 + 4 and set(images) == {"data:image/"}
     assert browser.evaluate("document.querySelectorAll('table.metrics tbody tr').length") == len(rec["metrics"])
     # The first round: its scores colour the candidates, and the views captured so far show.
     browser.evaluate("cameraView.setRound(0)")

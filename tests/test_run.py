@@ -101,7 +101,7 @@ def test_run_writes_its_outputs(source, tmp_path):
                  "camera_views.png", "views/view_003.png", "views/view_003.exr", "heldout/heldout_002_pred.png",
                  "heldout/heldout_002_gt.exr", "heldout/heldout_002_variance.png"):
         assert (out / name).is_file(), name
-    assert (out / "metrics.csv").read_text().splitlines()[0].startswith("views,psnr,ssim,distance_error")
+    assert (out / "metrics.csv").read_text().splitlines()[0].startswith("views,psnr,psnr_fg,ssim,distance_error")
     assert not [p for p in out.rglob(".*")]  # no temporary files left
 
 
@@ -602,27 +602,73 @@ class Masked(Planner):
     assert scores[0] is None and [s is None for s in scores[1:]] == [i in rec["captured"][:2] for i in range(1, 10)]
 
 
-def test_a_run_says_once_when_its_evaluation_field_did_not_train_long_enough(source, tmp_path):
-    """Too few evaluation steps leave the field unfit even for its own views:
-    its held-out scores then measure the training, and the run says so."""
-    from mitsuba_active.run import FIT_GAIN_DB, MIN_FIT_PSNR, fit_too_short
+def test_a_run_notes_once_when_its_evaluation_field_is_not_clearly_above_the_background(source, sphere_xml,
+                                                                                        tmp_path):
+    """A field trained one step scores no better than the background colour alone:
+    its held-out scores then measure the training, and the run says so once."""
+    from mitsuba_active.training import FLOOR_MARGIN_DB, at_floor, evaluation_note, fit_too_short
 
-    def run(out, eval_steps):
+    def run(src, out, eval_steps):
         lines = []
-        cfg = RunConfig(scene=str(source.scene.path), planner="even", **{**TINY, "eval_steps": eval_steps})
-        rec = Run(source, cfg, out, progress=False, log=lines.append).execute()
-        return rec, [ln for ln in lines if "evaluation field fits" in ln]
+        cfg = RunConfig(scene=str(src.scene.path), planner="even", **{**TINY, "eval_steps": eval_steps})
+        rec = Run(src, cfg, out, progress=False, log=lines.append).execute()
+        return rec, [ln for ln in lines if ln.startswith("note:")]
 
-    short, notes = run(tmp_path / "short", 5)
-    # The background starts white, which alone scores about 21 dB here: above the fixed bar, not above the start.
-    assert all(m["fit_psnr"] < m["fit_start_psnr"] + FIT_GAIN_DB for m in short["metrics"])
-    assert all(fit_too_short(m) for m in short["metrics"]) and len(notes) == 1, notes
-    assert "after 5 steps" in notes[0] and "raise eval_steps" in notes[0] and "at first" in notes[0]
-    assert "fit_psnr,fit_start_psnr" in (tmp_path / "short" / "metrics.csv").read_text().splitlines()[0]
-    trained, notes = run(tmp_path / "trained", 400)
-    assert all(not fit_too_short(m) for m in trained["metrics"]) and notes == []
-    # Records from before the floor have the fixed bar alone.
-    assert fit_too_short({"fit_psnr": MIN_FIT_PSNR - 1}) and not fit_too_short({"fit_psnr": MIN_FIT_PSNR + 1})
+    short, notes = run(source, tmp_path / "short", 1)
+    assert all(m["psnr_fg"] < m["floor_psnr_fg"] + FLOOR_MARGIN_DB for m in short["metrics"])
+    assert all(at_floor(m) and fit_too_short(m) for m in short["metrics"]) and len(notes) == 1, notes
+    assert re.fullmatch(r"note: at 2 views the evaluation field's held-out foreground PSNR is \d+\.\d dB, not 3 dB "
+                        r"above the background colour alone's \(\d+\.\d dB\): its scores cannot tell views apart; "
+                        r"raise eval_steps \(RunConfig.eval_steps, plan --eval-steps; default 1500\)", notes[0]), notes
+    # A ball looks alike from everywhere: a field of its views soon learns what the held-out ones see.
+    ball = tiny_source(sphere_xml, n_candidates=10, n_heldout=3, resolution=16)
+    trained, notes = run(ball, tmp_path / "trained", 100)
+    assert all(m["psnr_fg"] > m["floor_psnr_fg"] + FLOOR_MARGIN_DB for m in trained["metrics"]) and notes == []
+    # A field that fits its own views but not the held-out ones: its views are what it lacks.
+    assert evaluation_note({"views": 4, "psnr_fg": 18.0, "floor_psnr_fg": 16.0, "psnr": 23.0, "floor_psnr": 21.0,
+                            "fit_psnr": 40.0, "fit_start_psnr": 10.0}, 7, 1500).endswith(
+        "cannot tell views apart; it fits its own training views to 40.0 dB, so they show too little of what the "
+        "held-out views see")
+    # A field above the floor that barely fits its own views, and a record from before floors.
+    stalled = {"views": 4, "fit_psnr": 21.0, "fit_start_psnr": 20.0}
+    assert fit_too_short(stalled) and not at_floor(stalled) and not fit_too_short({"fit_psnr": 5.0})
+    assert evaluation_note(stalled, 7, 1500) == (
+        "note: the evaluation field fits its own 4 training views to only 21.0 dB after 7 steps (from 20.0 dB at "
+        "first): its held-out scores say more about the training than about the views; raise eval_steps "
+        "(RunConfig.eval_steps, plan --eval-steps; default 1500)")
+    # Without a foreground to score, the whole images are compared with the floor.
+    assert evaluation_note({"views": 2, "psnr": 21.0, "psnr_fg": None, "floor_psnr": 20.0}, 7, 1500) == (
+        "note: at 2 views the evaluation field's held-out PSNR is 21.0 dB, not 3 dB above the background colour "
+        "alone's (20.0 dB): its scores cannot tell views apart")
+    assert evaluation_note({"views": 2, "psnr": 24.0, "psnr_fg": 14.0, "floor_psnr": 23.0, "floor_psnr_fg": 8.0},
+                           7, 1500) is None
+
+
+def test_a_run_records_the_foreground_psnr_and_the_floor_and_resumes_a_record_without(source, tmp_path):
+    import csv
+
+    out = tmp_path / "r"
+    rec = _run(source, out, planner="even", eval_views=[2, 4, 6])
+    for m in rec["metrics"]:
+        # The background is exact where the views see none: the floor is lower on the foreground.
+        assert 0 < m["floor_psnr_fg"] < m["floor_psnr"] and 0 < m["psnr_fg"] < 100
+    rows = list(csv.DictReader((out / "metrics.csv").open()))
+    assert [float(r["psnr_fg"]) for r in rows] == pytest.approx([m["psnr_fg"] for m in rec["metrics"]], abs=1e-4)
+    assert all(r["floor_psnr"] and r["floor_psnr_fg"] for r in rows)
+    page = (out / "report.html").read_text()
+    assert "foreground PSNR (dB)" in page and "background alone: PSNR (dB)" in page
+    assert (out / "psnr_fg.png").is_file()
+    # A record from before the foreground PSNR goes on to a larger budget: its scores stay as they were.
+    for m in rec["metrics"]:
+        for key in ("psnr_fg", "floor_psnr", "floor_psnr_fg"):
+            del m[key]
+    (out / "run.json").write_text(json.dumps(rec))
+    lines = []
+    cfg = RunConfig(scene=str(source.scene.path), planner="even", **{**TINY, "eval_views": [2, 4, 6], "budget": 6})
+    longer = Run(source, cfg, out, progress=False, log=lines.append).execute()
+    assert [("psnr_fg" in m, m["views"]) for m in longer["metrics"]] == [(False, 2), (False, 4), (True, 6)]
+    assert [r["psnr_fg"] == "" for r in csv.DictReader((out / "metrics.csv").open())] == [True, True, False]
+    assert any(ln.startswith("    6 views: PSNR ") and ", foreground PSNR " in ln for ln in lines), lines
 
 
 def test_a_run_folder_refuses_a_source_with_other_cameras(source, tmp_path):

@@ -7,7 +7,9 @@ protocol: every capture is free. ``drone`` flies freely, keeping a safety
 margin from every surface of the Mitsuba scene, along the shortest route
 it finds: the straight segment when that is clear, else a shortest path
 over a visibility graph of waypoints offset from the scene's surfaces,
-shortened by cutting corners wherever the cut is clear.
+shortened by cutting corners wherever the cut is clear. ``ground`` is a
+holonomic wheeled base: it moves as the drone does, but in the plane
+across the scene's up axis at the height of its start pose.
 
 Collisions are ray casts through the scene: a segment is clear when its
 axis and eight lines around it, at the margin's distance, meet no surface;
@@ -78,6 +80,9 @@ class Embodiment:
     def paths(self, start: np.ndarray, targets: np.ndarray) -> list[Route]:
         """The routes from ``start`` (3,) to each of ``targets`` (T, 3)."""
         raise NotImplementedError
+
+    def start(self, position: np.ndarray) -> None:
+        """Set out from ``position`` (3,): the first capture's."""
 
     def path(self, a: np.ndarray, b: np.ndarray) -> Route:
         """The route from ``a`` (3,) to ``b`` (3,)."""
@@ -259,7 +264,64 @@ class Drone(Embodiment):
         return np.stack(kept)
 
 
-EMBODIMENTS = {cls.name: cls for cls in (Teleport, Drone)}
+@dataclass
+class Ground(Drone):
+    """A holonomic wheeled base: the camera keeps the height of its start pose along ``up``.
+
+    Attributes:
+        up: (3,) unit up axis of the scene.
+        height: the camera's height along ``up`` (scene units; None: set by :meth:`start`).
+    """
+
+    name: ClassVar[str] = "ground"
+    up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
+    height: float | None = None
+
+    def __post_init__(self):
+        super().__post_init__()
+        self.up = np.asarray(self.up, dtype=np.float64) / np.linalg.norm(self.up)
+
+    def start(self, position):
+        if self.height is None:
+            self.height = float(np.dot(position, self.up))
+
+    def _in_plane(self, points: np.ndarray) -> np.ndarray:
+        return np.abs(points @ self.up - self.height) <= 0.01 * self.margin
+
+    def reachable(self, points):
+        points = np.atleast_2d(np.asarray(points, dtype=np.float64))
+        if self.height is None:
+            return super().reachable(points)
+        return self._in_plane(points) & super().reachable(points)
+
+    def paths(self, start, targets):
+        targets = np.atleast_2d(np.asarray(targets, dtype=np.float64))
+        self.start(start)
+        if not self._in_plane(np.asarray(start, dtype=np.float64)[None])[0]:
+            raise ValueError(f"a ground route starts at the base's height {self.height}, not at {start}")
+        routes = super().paths(start, targets)
+        off = ~self._in_plane(targets)  # another height: the base cannot get there
+        return [Route(np.stack([start, t]), np.inf, np.inf) if o else r for r, o, t in zip(routes, off, targets)]
+
+    def _make_waypoints(self) -> np.ndarray:
+        # The drone's waypoints dropped onto the plane, and a grid over the scene's extent in it.
+        flat = super()._make_waypoints()
+        flat = flat - np.outer(flat @ self.up - self.height, self.up)
+        lo, hi = (np.asarray(b, dtype=np.float64) for b in (self.mi_scene.bbox().min, self.mi_scene.bbox().max))
+        centre, reach = 0.5 * (lo + hi), 0.75 * np.linalg.norm(hi - lo)
+        helper = np.eye(3)[int(np.argmin(np.abs(self.up)))]
+        u = np.cross(self.up, helper)
+        u /= np.linalg.norm(u)
+        v = np.cross(self.up, u)
+        t = np.linspace(-reach, reach, 24)
+        a, b = np.meshgrid(t, t)
+        base = centre - (centre @ self.up - self.height) * self.up
+        grid = base + a.reshape(-1, 1) * u + b.reshape(-1, 1) * v
+        points = np.concatenate([flat, grid])
+        return points[super().reachable(points)]
+
+
+EMBODIMENTS = {cls.name: cls for cls in (Teleport, Drone, Ground)}
 
 
 def make_embodiment(name: str, scene=None, speed: float = 1.0) -> Embodiment:
@@ -272,4 +334,6 @@ def make_embodiment(name: str, scene=None, speed: float = 1.0) -> Embodiment:
     if scene is None:
         raise UserError(f"the {name} embodiment moves through a scene's geometry; a dataset has none "
                         "(use --embodiment teleport)")
+    if name == "ground":
+        return Ground(speed=speed, mi_scene=scene.mi_scene, margin=MARGIN_SHARE * scene.radius, up=scene.up)
     return Drone(speed=speed, mi_scene=scene.mi_scene, margin=MARGIN_SHARE * scene.radius)

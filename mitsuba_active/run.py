@@ -779,6 +779,8 @@ class Run:
             self.env.reset(seed=cfg.seed, options={"initial_views": 0})
             self.env.restore(self.record["captured"])
             self.journey.restore(self.record["captured"], self.record.get("travel"))
+            if self.record["captured"]:
+                self.journey.embodiment.start(self.journey.positions[self.record["captured"][0]])
             # Written again from the restored views: one damaged or deleted by
             # the interruption is whole again.
             for n, v in enumerate(self.env.views):
@@ -858,6 +860,8 @@ class Run:
     def _travel_initial(self) -> None:
         """Account the travel through the initial views; the first is the start pose."""
         captured = list(self.env.captured)
+        if captured:
+            self.journey.embodiment.start(self.journey.positions[captured[0]])
         if captured and not self.journey.embodiment.reachable(self.journey.positions[captured[0]][None])[0]:
             raise UserError(f"the start pose, candidate {captured[0]} at "
                             f"{np.round(self.journey.positions[captured[0]], 4).tolist()}, lies inside the geometry "

@@ -8,7 +8,7 @@ import pytest
 from click.testing import CliRunner
 
 from mitsuba_active.cli import main
-from mitsuba_active.embodiments import RING, Drone, Teleport, polyline_length
+from mitsuba_active.embodiments import RING, Drone, Ground, Teleport, polyline_length
 from mitsuba_active.errors import UserError
 from mitsuba_active.run import Run, RunConfig, read_record
 from mitsuba_active.travel import Journey
@@ -73,6 +73,19 @@ def test_routes_never_pass_through_the_object(ball):
 def test_reachable_positions_keep_the_margin(ball):
     points = np.array([[0, 0, 0], [0, 0.5, 0], [1.05, 0, 0], [1.2, 0, 0], [0, 0, -3]])
     assert ball.reachable(points).tolist() == [False, False, False, True, True]
+
+
+def test_a_ground_base_drives_around_the_object_at_its_height(ball):
+    base = Ground(speed=1.0, mi_scene=ball.mi_scene, margin=MARGIN, up=np.array([0.0, 1.0, 0.0]))
+    base.start(np.array([-1.6, 0.0, 0.0]))
+    route = base.path(np.array([-1.6, 0.0, 0.0]), np.array([1.6, 0.0, 0.0]))
+    inner = 1.0 + MARGIN * math.cos(math.pi / RING)
+    # In its plane the sphere is a circle: the same tangents and arc, less closely followed on a sparser graph.
+    assert around_sphere(inner, 1.6) - 1e-6 <= route.length <= 1.05 * around_sphere(1.0 + MARGIN, 1.6)
+    assert np.allclose(route.points[:, 1], 0.0) and closest_approach(route.points) >= inner - 1e-3
+    assert not base.path(np.array([-1.6, 0.0, 0.0]), np.array([1.6, 0.5, 0.0])).found  # another height
+    assert base.reachable(np.array([[0.0, 0.0, 2.0], [0.0, 0.5, 2.0], [0.0, 0.0, 1.05]])).tolist() == [True, False,
+                                                                                                        False]
 
 
 def test_teleport_costs_nothing():

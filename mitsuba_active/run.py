@@ -921,10 +921,13 @@ class Run:
     # -- results ------------------------------------------------------------
     def _write_outputs(self) -> None:
         from .report import contact_sheet, plot_metrics, plot_views
+        from .travelplots import plot_travel
 
         write_metrics_csv(self.out / "metrics.csv", self.record["metrics"])
         label = planner_label(self.cfg.planner)
         plot_metrics({label: self.record["metrics"]}, self.out, title=self.source.name)
+        plot_travel({**self.record, "up": getattr(getattr(self.source, "scene", None), "up", None)}, self.out,
+                    title=f"{self.source.name}: {label}, {self.cfg.embodiment}")
         files = self.record.get("candidate_files")  # a dataset's: its frames are known by their files
         names = [Path(files[i]).stem if files else f"cand {i}" for i in self.env.captured]
         contact_sheet([v.rgb for v in self.env.views], [f"#{n} {name}" for n, name in enumerate(names)],

@@ -122,8 +122,11 @@ class Journey:
     def advance(self, index: int, route: Route) -> None:
         """Move to candidate ``index`` along ``route`` and capture there."""
         self.position = self.positions[index]
-        self.legs.append({"distance": round(self.distance + route.length, 6),
-                          "time": round(self.time + route.time + self.cfg.capture_time, 6)})
+        leg = {"distance": round(self.distance + route.length, 6),
+               "time": round(self.time + route.time + self.cfg.capture_time, 6)}
+        if self.embodiment.name != "teleport":  # the way it went, for the route plot
+            leg["route"] = np.round(route.points, 5).tolist()
+        self.legs.append(leg)
 
     def restore(self, captured: list[int], legs: list | None) -> None:
         """Take up a run's journey again: at its last capture, with its recorded legs (a record

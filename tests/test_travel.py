@@ -155,6 +155,12 @@ def test_a_drone_run_records_its_travel(spot_xml, tmp_path):
     assert [m["travel_distance"] for m in rec["metrics"]] == [legs[1]["distance"], legs[3]["distance"]]
     header = (out / "metrics.csv").read_text().splitlines()[0]
     assert header.endswith("travel_distance,mission_time")
+    # Each leg's route runs from the last capture to the next, as long as the distance it adds.
+    for n in range(1, 4):
+        route = np.array(legs[n]["route"])
+        assert np.allclose(route[[0, -1]], pos[n - 1:n + 1], atol=1e-4)
+        assert polyline_length(route) == pytest.approx(legs[n]["distance"] - legs[n - 1]["distance"], abs=1e-3)
+    assert (out / "psnr_travel.png").is_file() and (out / "route.png").is_file()
     # A travel budget just short of the third capture's route stops the run after two views.
     budget = 0.5 * (legs[1]["distance"] + legs[2]["distance"])
     cfg2 = RunConfig(scene=str(source.scene.path), planner="rfe", embodiment="drone", travel_budget=budget, **tiny)

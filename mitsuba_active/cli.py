@@ -30,12 +30,14 @@ with interruptible_imports():  # click and numpy load here, after the package's 
     from .cameras import RIG_KINDS
     from .checks import nearest
     from .console import mitsuba_log_as_warnings, one_line, show_warning
+    from .embodiments import EMBODIMENTS
     from .errors import FolderError, UserError
     from .executors import EXECUTORS, RAY_OPTION_NAMES, STORAGE, RayOptions
     from .field.config import DEFAULT_PRESET, FIELD_PRESETS
     from .imageio_utils import folder_name, new_entries, remove_new
     from .scene import DEFAULT_COLOR, UP_AXES, SceneOptions
     from .scenes import BUNDLED_SCENE
+    from .travel import TRAVEL_SETTINGS
 
 
 def _os_error_line(exc: OSError) -> str:
@@ -256,6 +258,15 @@ def _rig_options(fn):
     return fn
 
 
+def _travel_options(fn):
+    """plan's options of :data:`~mitsuba_active.travel.TRAVEL_SETTINGS`, named as the settings are."""
+    for name, (default, text) in reversed(TRAVEL_SETTINGS.items()):
+        kind = _Choice(list(EMBODIMENTS)) if name == "embodiment" else float
+        fn = click.option(f"--{name.replace('_', '-')}", name, type=kind, default=default,
+                          show_default=default is not None, help=text)(fn)
+    return fn
+
+
 def _check_rig_options(rig: str) -> None:
     """UserError for a rig option given on the command line that the rig ignores."""
     if rig == "xml" and "n_candidates" in _given_options():
@@ -398,6 +409,7 @@ def _parse_counts(text: str) -> list[int]:
                                       + "; ".join(f"{k}: {p.summary}" for k, p in FIELD_PRESETS.items()) + ".")
 @click.option("--distance-weight", type=float, default=0.0, show_default=True,
               help="Weight of the distance loss (0: photometric only).")
+@_travel_options
 @click.option("--out", "out", type=click.Path(file_okay=False), default=None,
               help="Run folder [runs/SCENE-PLANNER-seedN]; an unfinished run there is resumed, a finished one "
                    "given a larger --budget goes on from the views it has.")
@@ -405,7 +417,7 @@ def _parse_counts(text: str) -> list[int]:
 @_one_line_errors
 def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig, n_candidates, n_heldout,
          resolution, fov, spp, downscale, rays_per_candidate, score_form, planner_option, steps_per_view, eval_views,
-         eval_steps, field_preset, distance_weight, out, quiet):
+         eval_steps, field_preset, distance_weight, out, quiet, **travel):
     """Choose views of SCENE_PATH with a planner; score the reconstruction.
 
     SCENE_PATH is a Mitsuba scene XML, a mesh (a scene is authored around
@@ -442,7 +454,7 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
                     resolution=resolution, candidates=n_candidates, heldout=n_heldout, rig=rig, fov=fov, spp=spp,
                     downscale=downscale, rays_per_candidate=rays_per_candidate,
                     eval_views=_parse_counts(eval_views), distance_weight=distance_weight,
-                    field_preset=field_preset)
+                    field_preset=field_preset, **travel)
     if steps_per_view is not None:
         cfg.steps_per_view = steps_per_view
     if eval_steps is not None:

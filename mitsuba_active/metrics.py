@@ -10,10 +10,10 @@ import numbers
 
 import numpy as np
 
-#: Decimals that CSV files print each figure with (dB, SSIM, percent, seconds):
+#: Decimals that CSV files print each figure with (dB, SSIM, percent, seconds, scene units):
 #: runs under one seed agree to about 1e-6, and more digits would differ between them.
 DECIMALS = {"psnr": 4, "psnr_fg": 4, "ssim": 4, "distance_error": 4, "floor_psnr": 4, "floor_psnr_fg": 4,
-            "fit_psnr": 4, "fit_start_psnr": 4, "eval_seconds": 3}
+            "fit_psnr": 4, "fit_start_psnr": 4, "eval_seconds": 3, "travel_distance": 4, "mission_time": 3}
 
 
 def fixed(value, decimals: int | None):

@@ -32,6 +32,7 @@ import numpy as np
 
 from .cameras import RIG_KINDS, snapped_up
 from .checks import choice_named, is_number, is_whole, unknown_choice
+from .embodiments import make_embodiment
 from .env import ActiveViewEnv, SceneSource
 from .errors import FolderError, FolderInUse, TrainingDiverged, UserError
 from .field.config import DEFAULT_PRESET, FIELD_PRESETS, LEGACY_PRESET
@@ -41,9 +42,10 @@ from .imageio_utils import (atomic_write, colorize, folder_lock, new_entries, re
 from .metrics import DECIMALS, fixed
 from .planners import PlanningState, make_planner
 from .planners.base import (is_planner_file, planner_digest, planner_folder, planner_label, planner_rng,
-                             resolve_reference)
+                             resolve_reference, unseen)
 from .training import (MAX_CANDIDATE_RAYS, PLANNER_INIT_SCALE, evaluation_note, has_distances, predict_view,
                        score_views, scores_line, sparse_candidate_rays, train_on)
+from .travel import TRAVEL_SETTINGS, Journey, diameter_of, travel_problems
 from .webpage import REPORT_FILE, write_run_page
 
 RUN_FORMAT = 1
@@ -73,6 +75,8 @@ class RunConfig:
         field_preset: the field's named settings (:data:`~mitsuba_active.field.config.FIELD_PRESETS`).
         field: overrides of :class:`~mitsuba_active.field.FieldConfig` options
             (e.g. ``{"n_samples": 32}``), for the planner's ensemble and the evaluation field alike.
+        embodiment, travel_budget, time_budget, speed, capture_time, cost_weight: how the camera
+            moves and what its travel may cost (:data:`~mitsuba_active.travel.TRAVEL_SETTINGS`).
     """
 
     scene: str = ""
@@ -98,6 +102,12 @@ class RunConfig:
     distance_weight: float = 0.0
     field_preset: str = DEFAULT_PRESET
     field: dict = field(default_factory=dict)
+    embodiment: str = TRAVEL_SETTINGS["embodiment"][0]
+    travel_budget: float | None = TRAVEL_SETTINGS["travel_budget"][0]
+    time_budget: float | None = TRAVEL_SETTINGS["time_budget"][0]
+    speed: float = TRAVEL_SETTINGS["speed"][0]
+    capture_time: float = TRAVEL_SETTINGS["capture_time"][0]
+    cost_weight: float = TRAVEL_SETTINGS["cost_weight"][0]
 
     def __post_init__(self):
         if isinstance(self.scene, os.PathLike):  # run.json holds it as text
@@ -176,6 +186,9 @@ class RunConfig:
         for ok, message in checks:
             if not ok:
                 raise UserError(message)
+        problems = travel_problems(self)
+        if problems:
+            raise UserError(problems[0])
 
     def open_source(self, cache_dir=None):
         """The view source these settings describe: :func:`~mitsuba_active.datasets.open_source`
@@ -253,6 +266,8 @@ def config_changes(recorded, current: dict, compare_scene: bool = True) -> dict:
         if planner is not None and is_whole(config.get("ensemble")):
             config["ensemble"] = planner.ensemble_size(config["ensemble"]) if planner.needs_ensemble else None
         config.setdefault("field_preset", LEGACY_PRESET)  # a record from before presets
+        for name, (default, _) in TRAVEL_SETTINGS.items():  # a record from before travel ran as teleport
+            config.setdefault(name, default)
         scene = config.pop("scene", None)
         if compare_scene:
             config["scene"] = str(Path(scene).resolve()) if scene else scene
@@ -274,7 +289,7 @@ RECORD_PARTS = {"config": dict, "candidates": list, "heldout": list, "captured":
                 # ---
                 "rounds": list, "versions": dict, "rng_state": dict, "planner_options": dict, "distances": bool,
                 "bbox": list, "budget_changes": list, "resumed_with": list, "ensemble_file": str,
-                "candidate_files": list, "heldout_files": list}
+                "candidate_files": list, "heldout_files": list, "travel": list, "stopped": dict}
 REQUIRED_PARTS = ("config", "candidates", "heldout", "captured", "metrics", "finished")
 
 
@@ -332,7 +347,7 @@ def read_record(path) -> dict:
         raise damaged(f"its captured views are not indices of its {n} candidates")
     # Its views on disk are the captured ones in order: a list edited by hand would pair them with other poses.
     captured, budget = rec["captured"], rec["config"].get("budget")
-    if rec["finished"] and is_whole(budget) and len(captured) != budget:
+    if rec["finished"] and is_whole(budget) and len(captured) != budget and not rec.get("stopped"):
         raise damaged(f"it is finished with {len(captured)} captured views, but its budget is {budget}")
     for r in rec.get("rounds", ()):
         views, picks = (r.get("views"), r.get("picks")) if isinstance(r, dict) else (None, None)
@@ -354,6 +369,11 @@ def read_record(path) -> dict:
     ens_file = rec.get("ensemble_file")
     if ens_file is not None and not ENSEMBLE_FILE.fullmatch(ens_file):  # the run removes it when replaced
         raise damaged(f"its ensemble_file {ens_file!r} is not one of the run's ensemble_NNN.npz files")
+    travel = rec.get("travel")
+    # At least one entry per captured view: a run notes its travel before it lists the capture.
+    if travel is not None and not (len(travel) >= len(captured) and all(
+            isinstance(t, dict) and is_number(t.get("distance")) and is_number(t.get("time")) for t in travel)):
+        raise damaged("its travel is not the distance and time so far at each captured view")
     bbox = rec.get("bbox")
     if bbox is not None and not (np.shape(bbox) == (2, 3) and all(is_number(v, finite=True)
                                                                    for corner in bbox for v in corner)):
@@ -562,6 +582,9 @@ class Run:
         self.planner.check_ensemble_size(cfg.ensemble)
         source_field_config(source, cfg)  # field options are checked before anything is written
         self.env = ActiveViewEnv(source, cfg.budget, allow_repeats=True)  # the random planner repeats views
+        self.journey = Journey(make_embodiment(cfg.embodiment, getattr(source, "scene", None), cfg.speed), cfg,
+                               [c.to_world[:3, 3] for c in source.candidates],
+                               diameter_of(source.bbox_min, source.bbox_max))
         self.rng = planner_rng(cfg.seed)
         self.record = None
         self.ensemble = None
@@ -742,6 +765,9 @@ class Run:
         if resumed:
             self.env.reset(seed=cfg.seed, options={"initial_views": 0})
             self.env.restore(self.record["captured"])
+            self.journey.restore(self.record["captured"], self.record.get("travel"))
+            if self.record["captured"]:
+                self.journey.embodiment.start(self.journey.positions[self.record["captured"][0]])
             # Written again from the restored views: one damaged or deleted by
             # the interruption is whole again.
             for n, v in enumerate(self.env.views):
@@ -754,6 +780,7 @@ class Run:
                          f"differ from those of a run made with a budget of {cfg.budget} from the start")
         else:
             self.env.reset(seed=cfg.seed, options={"initial_views": cfg.initial_views})
+            self._travel_initial()
             self.record["captured"] = list(self.env.captured)
             for n, v in enumerate(self.env.views):
                 self._save_view(n, v)
@@ -783,15 +810,16 @@ class Run:
                    disable=not self.progress)
         while True:
             self._evaluate_due()
-            if self.env.terminated:
+            if self.env.terminated or self.record.get("stopped"):
                 break
             b = min(cfg.batch, cfg.budget - len(self.env.captured))
             t0 = time.perf_counter()
             picks, scores = self.planner.checked_select(state, b)
+            picks = self.journey.weigh(picks, scores, unseen(state))
             t_select = time.perf_counter() - t0
-            for i in picks:
-                self.env.step(i)
-                self._save_view(len(self.env.captured) - 1, self.env.views[-1])
+            picks = self._travel_to(picks)
+            if not picks:
+                continue
             t1 = time.perf_counter()
             if self.ensemble is not None:
                 # With no initial views the ensemble meets its first data here.
@@ -803,7 +831,8 @@ class Run:
                 "poses": [self.source.candidates[int(i)].to_world.tolist() for i in picks],
                 # JSON has no inf or NaN: a score that is not finite is written as null.
                 "scores": None if scores is None else [float(s) if math.isfinite(s) else None for s in scores],
-                "select_seconds": round(t_select, 4), "train_seconds": round(time.perf_counter() - t1, 4)})
+                "select_seconds": round(t_select, 4), "train_seconds": round(time.perf_counter() - t1, 4),
+                "travel": self.journey.legs[-len(picks):]})
             self._add_planning_time(t_select + time.perf_counter() - t1)
             self._save_round()
             bar.update(len(picks))
@@ -814,14 +843,53 @@ class Run:
         write_run_page(self.out, self.record)
         return self.record
 
+    # -- travel -------------------------------------------------------------
+    def _travel_initial(self) -> None:
+        """Account the travel through the initial views; the first is the start pose."""
+        captured = list(self.env.captured)
+        if captured:
+            self.journey.embodiment.start(self.journey.positions[captured[0]])
+        if captured and not self.journey.embodiment.reachable(self.journey.positions[captured[0]][None])[0]:
+            raise UserError(f"the start pose, candidate {captured[0]} at "
+                            f"{np.round(self.journey.positions[captured[0]], 4).tolist()}, lies inside the geometry "
+                            f"or too near it for the {self.cfg.embodiment}")
+        for n, i in enumerate(captured):
+            route, why = self.journey.fits(i)
+            self.journey.advance(i, route)
+            if why and not self.record.get("stopped"):  # captured already: the run stops after them
+                self._stop(n + 1, f"the initial views alone pass the budgets ({why})")
+        self.record["travel"] = self.journey.legs
+
+    def _travel_to(self, picks: list[int]) -> list[int]:
+        """Capture ``picks`` in order while they fit the travel budgets; returns those captured."""
+        done = []
+        for i in picks:
+            route, why = self.journey.fits(i)
+            if why:
+                self._stop(len(self.env.captured), why)
+                break
+            self.env.step(i)
+            self.journey.advance(i, route)
+            self._save_view(len(self.env.captured) - 1, self.env.views[-1])
+            done.append(i)
+        self.record["travel"] = self.journey.legs
+        return done
+
+    def _stop(self, views: int, why: str) -> None:
+        self.record["stopped"] = {"views": views, "reason": why}
+        self.log(f"stopped at {views} view{'' if views == 1 else 's'}: {why}")
+
     def _evaluate_due(self) -> None:
         done = {m["views"] for m in self.record["metrics"]}
         n = len(self.env.captured)
-        for count in self.cfg.report_counts():
+        stopped = [n] if self.record.get("stopped") and n >= max(self.cfg.initial_views, 1) else []
+        for count in sorted(set(self.cfg.report_counts()) | set(stopped)):
             if count <= n and count not in done:
                 # In candidate order: planners that captured the same views, in any order, score the same.
                 first = sorted(range(count), key=lambda i: self.env.captured[i])
                 metrics, preds = evaluate(self.source, [self.env.views[i] for i in first], self.cfg)
+                leg = self.journey.legs[count - 1] if len(self.journey.legs) >= count else {}
+                metrics["travel_distance"], metrics["mission_time"] = leg.get("distance"), leg.get("time")
                 self.record["metrics"].append(metrics)
                 self.record["metrics"].sort(key=lambda m: m["views"])
                 self._last_preds = preds
@@ -835,10 +903,13 @@ class Run:
     # -- results ------------------------------------------------------------
     def _write_outputs(self) -> None:
         from .report import contact_sheet, plot_metrics, plot_views
+        from .travelplots import plot_travel
 
         write_metrics_csv(self.out / "metrics.csv", self.record["metrics"])
         label = planner_label(self.cfg.planner)
         plot_metrics({label: self.record["metrics"]}, self.out, title=self.source.name)
+        plot_travel({**self.record, "up": getattr(getattr(self.source, "scene", None), "up", None)}, self.out,
+                    title=f"{self.source.name}: {label}, {self.cfg.embodiment}")
         files = self.record.get("candidate_files")  # a dataset's: its frames are known by their files
         names = [Path(files[i]).stem if files else f"cand {i}" for i in self.env.captured]
         contact_sheet([v.rgb for v in self.env.views], [f"#{n} {name}" for n, name in enumerate(names)],
@@ -876,7 +947,7 @@ def write_metrics_csv(path, metrics: list[dict]) -> None:
     """A run's metrics as CSV, one row per view count, each figure with its :data:`~.metrics.DECIMALS`
     (empty where a record has none)."""
     cols = ["views", "psnr", "psnr_fg", "ssim", "distance_error", "floor_psnr", "floor_psnr_fg", "fit_psnr",
-            "fit_start_psnr", "eval_seconds"]
+            "fit_start_psnr", "eval_seconds", "travel_distance", "mission_time"]
     with atomic_write(path) as tmp, open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=cols, extrasaction="ignore")
         w.writeheader()

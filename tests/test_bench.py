@@ -376,7 +376,7 @@ def test_suite_runs_in_worker_processes(tiny_suite, tmp_path):
 @pytest.mark.parametrize("text, message", [
     ("planners = ['oracle']\n[[scenes]]\nmesh='x.obj'\n", "unknown planner"),
     ("[[scenes]]\nname='a'\n", "exactly one"),
-    ("[defaults]\nspeed = 3\n[[scenes]]\nmesh='x.obj'\n", "unknown settings"),
+    ("[defaults]\npace = 3\n[[scenes]]\nmesh='x.obj'\n", "unknown settings"),
     # The scenes, planners and --seeds name the runs: not settings.
     ("[defaults]\nseed = 3\n[[scenes]]\nmesh='x.obj'\n", "unknown settings in \\[defaults\\]: seed"),
     ("[[scenes]]\nmesh='x.obj'\nplanner='rfe'\n", "unknown settings: planner"),
@@ -602,7 +602,7 @@ def test_set_overrides_parse_as_toml_values():
 
 @pytest.mark.parametrize("item, message", [
     ("ensemble", "KEY=VALUE"),
-    ("speed=3", "unknown setting 'speed'"),
+    ("pace=3", "unknown setting 'pace'"),
     ("seed=1", "choose them with --seeds"),
     ("planner=rfe", "choose them with --planners"),
     ("field=3", "unknown setting 'field'"),

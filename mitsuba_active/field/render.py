@@ -114,6 +114,12 @@ def ray_box(o, d, box_min, box_max):
     return t_near, t_far
 
 
+def box_normalised(params: FieldParams, p):
+    """Points ``p`` (``mi.Point3f``, scene units) in the unit cube of the field's padded box."""
+    return mi.Point3f((p - mi.Vector3f(params.box_min)) * mi.Vector3f(1.0 / np.subtract(params.box_max,
+                                                                                         params.box_min)))
+
+
 def sample_along_rays(o, d, params: FieldParams, jitter=None):
     """Stratified sample positions, one block of S samples per ray.
 
@@ -146,9 +152,7 @@ def sample_along_rays(o, d, params: FieldParams, jitter=None):
     frac = (k + (0.5 if jitter is None else jitter))
     t = dr.fma(frac, delta, tn)
     p = dr.fma(dd, t, oo)
-    bmin = mi.Vector3f(params.box_min)
-    inv_ext = mi.Vector3f(1.0 / np.subtract(params.box_max, params.box_min))
-    u = mi.Point3f((p - bmin) * inv_ext)
+    u = box_normalised(params, p)
     return dict(ray=ray, t=t, delta=delta, p=p, u=u, valid=valid, ray_valid=t_far > t_near, o=o, d=d)
 
 
@@ -512,9 +516,7 @@ def _view_colour(params: FieldParams, s: dict, distance, member):
     """The view-dependent colour residual (``mi.Color3f``, per ray) at the
     rays' expected hits ``distance`` away (see :mod:`.view`)."""
     o, d = mi.Point3f(s["o"]), mi.Vector3f(s["d"])
-    bmin = mi.Vector3f(params.box_min)
-    inv_ext = mi.Vector3f(1.0 / np.subtract(params.box_max, params.box_min))
-    u = mi.Point3f((dr.fma(d, distance, o) - bmin) * inv_ext)
+    u = box_normalised(params, dr.fma(d, distance, o))
     return view_residual(params.view, params.view_resolution, params.view_degree, params.n_members, u, d, member)
 
 

@@ -305,6 +305,8 @@ def test_benchmark_scripts_refuse_bad_field_options(script, args, message):
     (dict(n_levels=100), "n_levels must be at most 16"),
     (dict(per_level_scale=1e300), "the finest level would have more than 65536 cells per axis"),
     (dict(bbox_padding=1e30), "bbox_padding must be at most 1"),
+    (dict(view_degree=3), "view_degree must be in \\[0, 2\\]"),
+    (dict(view_degree=1, view_resolution=0), "view_resolution in \\[1, 256\\]"),
 ])
 def test_field_options_out_of_range(options, message):
     from mitsuba_active.field import FieldConfig

@@ -16,6 +16,7 @@ import mitsuba as mi
 
 from mitsuba_active.errors import UserError
 from mitsuba_active.field import Ensemble, FieldConfig
+from mitsuba_active.field.variational import VariationalField
 from mitsuba_active.field.config import FIELD_PRESETS
 from mitsuba_active.field.render import composite, composite_marched, field_at, render_flat
 
@@ -844,6 +845,8 @@ def test_the_view_dependent_colour_trains_saves_loads_and_has_true_gradients(tmp
     for key in ("rgb", "distance", "opacity"):
         assert np.array_equal(ens.render(o, d)[key], loaded.render(o, d)[key]), key
     assert np.array_equal(loaded.view_numpy(), ens.view_numpy())
+    with pytest.raises(UserError, match="a VariationalField is diffuse: set view_degree = 0"):
+        VariationalField(*BOX, config=cfg)
 
     params = ens.params()
     table = np.array(dr.detach(params.view), np.float64)

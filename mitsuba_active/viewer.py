@@ -42,6 +42,18 @@ def read_run(run_dir) -> dict:
     return read_record(path)
 
 
+def path_segments(data: dict, shown: int) -> np.ndarray:
+    """The way between the first ``shown`` captures of :func:`camera_scene`'s ``data``, as (N, 2, 3)
+    line segments: each leg's recorded route where the camera moved, else a straight line."""
+    points = [np.asarray(data["candidates"][i]["p"], dtype=float) for i in data["captured"][:shown]]
+    routes = data.get("routes") or []
+    segments = []
+    for k in range(1, len(points)):
+        route = np.asarray(routes[k], dtype=float) if k < len(routes) and routes[k] else np.stack(points[k - 1:k + 1])
+        segments.extend(np.stack([route[:-1], route[1:]], axis=1))
+    return np.asarray(segments, dtype=float).reshape(-1, 2, 3)
+
+
 def opencv_wxyz(cam: dict) -> np.ndarray:
     """The quaternion (w, x, y, z) of a page camera (:func:`~.webpage.camera_scene`) in viser's
     OpenCV convention: +Z forward, +X right, +Y down."""
@@ -159,14 +171,13 @@ class RunViewer:
                 int(name.rsplit("/", 1)[1]) >= len(data["captured"])]
         for name in gone:
             self.handles.pop(name).remove()
-        points = np.array([data["candidates"][i]["p"] for i in data["captured"][:shown]])
         if self._path is not None:
             self._path.remove()
             self._path = None
-        if len(points) > 1:
-            self._path = self.server.scene.add_line_segments("/path", np.stack([points[:-1], points[1:]], axis=1),
-                                                             colors=CAPTURED_COLOUR, thickness=2.0,
-                                                             thickness_units="screen")
+        segments = path_segments(data, shown)
+        if len(segments):
+            self._path = self.server.scene.add_line_segments("/path", segments, colors=CAPTURED_COLOUR,
+                                                             thickness=2.0, thickness_units="screen")
 
     def _view_image(self, n: int):
         import imageio.v3 as iio

@@ -99,9 +99,14 @@ def camera_scene(rec: dict) -> dict:
                                                                 for s in r["scores"]]}
               for r in rec.get("rounds", [])]
     cfg = rec.get("config", {})
+    # The way a moving camera went to each capture (None: straight, or teleported).
+    routes = [np.round(up_vertical(leg["route"], up), 5).tolist()
+              if isinstance(leg, dict) and leg.get("route") and len(leg["route"]) > 1 else None
+              for leg in (rec.get("travel") or [])[:len(rec["captured"])]]
     return {"corners": np.round(corners, 5).tolist(), "candidates": [_camera_entry(c, up) for c in candidates],
             "heldout": [_camera_entry(c, up) for c in heldout], "captured": list(rec["captured"]),
-            "initial": min(int(cfg.get("initial_views", 0)), len(rec["captured"])), "rounds": rounds}
+            "initial": min(int(cfg.get("initial_views", 0)), len(rec["captured"])), "rounds": rounds,
+            "routes": routes}
 
 
 def _metrics_table(metrics: list[dict]) -> str:

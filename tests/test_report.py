@@ -190,6 +190,54 @@ def test_a_page_of_an_old_record_shows_what_it_holds_and_stays_small(browser, tm
     assert browser.errors == []
 
 
+def test_a_moving_cameras_route_is_drawn_as_it_went(browser, tmp_path):
+    """Each leg's recorded route (a detour around the object) is drawn, in the page and in the viewer's
+    segments; a leg without one (a record from before routes were kept) is a straight line."""
+    from mitsuba_active.viewer import path_segments
+    from mitsuba_active.webpage import camera_scene, write_run_page
+
+    cams = fibonacci_sphere(12, (0, 0, 0), 2.0, width=16, height=16)
+    captured = [0, 5, 9, 3]
+    legs = [{"distance": 0.0, "time": 0.0, "route": [cams[0].position.tolist()] * 2}]
+    for a, b in zip(captured[:-1], captured[1:]):
+        pa, pb = np.asarray(cams[a].position), np.asarray(cams[b].position)
+        detour = (pa + pb) / 2 * 3.0  # well outside the straight line
+        legs.append({"distance": 1.0, "time": 1.0, "route": [pa.tolist(), detour.tolist(), pb.tolist()]})
+    del legs[-1]["route"]
+    rec = {"config": {"budget": 4, "initial_views": 1, "planner": "rfe"},
+           "candidates": [c.to_dict() for c in cams[:10]], "heldout": [c.to_dict() for c in cams[10:]],
+           "captured": captured, "travel": legs, "metrics": [], "finished": True}
+    data = camera_scene(rec)
+    segments = path_segments(data, len(captured))
+    assert segments.shape == (2 + 2 + 1, 2, 3)
+    assert np.allclose(segments[0, 1], data["routes"][1][1]) and data["routes"][3] is None
+    browser.open(write_run_page(tmp_path, rec).as_uri())
+    assert browser.evaluate("cameraView.routes") == 2
+    assert browser.errors == []
+
+
+def test_a_suite_page_opens_offline_with_its_tables_plots_and_links(browser, tmp_path):
+    from mitsuba_active.webpage import write_suite_page
+
+    run = tmp_path / "runs" / "ball" / "rfe_s0"
+    run.mkdir(parents=True)
+    (run / "report.html").write_text("<!DOCTYPE html><title>the run</title><p>run</p>")
+    report = tmp_path / "report"
+    (report / "plots" / "ball").mkdir(parents=True)
+    iio.imwrite(report / "plots" / "ball" / "psnr.png", np.full((20, 30, 3), 90, np.uint8))
+    tables = ["## PSNR\n\n| planner | ball @4 |\n|---|---|\n| rfe | 25.00 |\n| even | 24.00 |\n"]
+    page = write_suite_page(report, report, "suite", tables, {"ball": {"rfe": [run], "even": [tmp_path / "gone"]}})
+    assert not OFF_PAGE.search(page.read_text())
+    browser.open(page.as_uri())
+    assert browser.evaluate("document.querySelectorAll('table tbody tr').length") == 2
+    assert browser.evaluate("Array.from(document.images).filter(i => i.complete && i.naturalWidth > 0).length") == 1
+    links = browser.evaluate("Array.from(document.links).map(a => a.href)")
+    assert len(links) == 1  # the run without a page gets no link
+    browser.open(links[0])
+    assert browser.evaluate("document.title") == "the run"
+    assert browser.errors == []
+
+
 def test_the_pages_markdown_tables():
     from mitsuba_active.webpage import markdown_tables
 

@@ -110,12 +110,21 @@
     });
     items.sort((a, b) => b.depth - a.depth);
     items.forEach(drawItem);
-    // The path between captured views, in capture order, numbered.
-    const path = [];
+    // The path between captured views, in capture order, numbered: the route a moving camera took where
+    // the record has it, else a straight line.
+    const path = [], routes = data.routes || [];
+    let drawnRoutes = 0;
     for (let k = 0; k < n; k++) path.push(project(data.candidates[data.captured[k]].p));
     ctx.strokeStyle = "rgba(220,30,30,0.55)";
     ctx.lineWidth = 1.5;
-    for (let k = 1; k < path.length; k++) if (path[k - 1] && path[k]) line(path[k - 1], path[k]);
+    for (let k = 1; k < path.length; k++) {
+      const route = routes[k] ? routes[k].map(project) : null;
+      if (route && route.every((p) => p !== null)) {
+        for (let j = 1; j < route.length; j++) line(route[j - 1], route[j]);
+        drawnRoutes++;
+      } else if (path[k - 1] && path[k]) line(path[k - 1], path[k]);
+    }
+    view.routes = drawnRoutes;
     ctx.font = "11px sans-serif";
     ctx.fillStyle = "#000";
     path.forEach((p, k) => { if (p) ctx.fillText(String(k), p[0] + 4, p[1] - 4); });

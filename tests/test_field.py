@@ -870,3 +870,46 @@ def test_the_view_dependent_colour_trains_saves_loads_and_has_true_gradients(tmp
         down[i] -= eps
         fd = (dr.detach(f(up)[0])[0] - dr.detach(f(down)[0])[0]) / (2 * eps)
         assert abs(fd - grad[i]) <= 1e-3 + 2e-2 * abs(grad[i]), (i, fd, grad[i])
+
+
+def glossy_ball_views(directions, width=16, spp=16):
+    """Rays and Mitsuba path-traced colours, distances and hits of a half-metallic ball
+    (a diffuse and a rough conductor lobe) reflecting a sky that is bright above and dark below,
+    seen from 2.2 units away along ``directions``; the sky itself is hidden (black)."""
+    from mitsuba_active.cameras import Camera, camera_rays as pinhole_rays, look_at
+    from mitsuba_active.groundtruth import render_distance, render_rgb
+
+    lat = (np.arange(16) + 0.5) / 16  # 0 at the zenith
+    sky = np.stack([0.2 + 0.8 * (1 - lat), 0.3 + 0.6 * (1 - lat), 0.3 + 0.2 * lat], -1)
+    scene = mi.load_dict({
+        "type": "scene", "integrator": {"type": "path", "max_depth": 3, "hide_emitters": True},
+        "ball": {"type": "sphere", "radius": 0.5, "bsdf": {
+            "type": "blendbsdf", "weight": 0.6,
+            "a": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.3, 0.2]}},
+            "b": {"type": "roughconductor", "alpha": 0.3}}},
+        "sky": {"type": "envmap", "bitmap": mi.Bitmap(np.repeat(sky[:, None], 32, 1).astype(np.float32))}})
+    rays = []
+    for direction in directions:
+        cam = Camera(look_at(2.2 * direction, [0.0, 0.0, 0.0]), 40.0, width, width)
+        distance = render_distance(scene, cam).ravel()
+        rgb = np.clip(render_rgb(scene, cam, spp).reshape(-1, 3), 0.0, 1.0)
+        rays.append(pinhole_rays(cam) + (rgb, distance, distance > 0))
+    return [np.concatenate(a) for a in zip(*rays)]
+
+
+def test_the_fast_preset_with_a_view_dependent_colour_fits_a_glossy_ball_better():
+    """The fast preset's field with view_degree=1, against the same without, on held-out views of a
+    Mitsuba-rendered glossy ball: the reflection changes with the view, which a diffuse field blurs."""
+    from mitsuba_active.cameras import fibonacci_directions
+
+    train = glossy_ball_views(fibonacci_directions(24))
+    held_o, held_d, held_rgb, _, _ = glossy_ball_views(fibonacci_directions(4, 0.5))
+    errors = {}
+    for degree in (0, 1):
+        cfg = FieldConfig.preset("fast", view_degree=degree, batch_rays=1024)
+        ens = Ensemble([-0.5] * 3, [0.5] * 3, n_members=1, config=cfg, seed=0)
+        ens.set_rays(*train)
+        ens.train(600)
+        errors[degree] = np.mean((ens.predict(held_o, held_d)["rgb_mean"] - held_rgb) ** 2)
+    # Measured: 0.8 dB lower error with the residual (mean squared error 1.21e-3 against 1.46e-3).
+    assert errors[1] < 0.93 * errors[0], errors

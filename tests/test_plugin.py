@@ -73,13 +73,15 @@ def test_plugin_matches_the_library_renderer(field_path, camera):
     assert p["rgb_var"].max() > 1e-6 and p["opacity"].max() > 0.05 and p["distance_mean"].max() > 1.0
 
 
-def test_the_default_preset_renders_as_the_library_renders_it(tmp_path, camera):
-    """Hashed levels and empty-space skipping (the default preset's, at a tiny table size) in the plugin."""
+@pytest.mark.parametrize("preset", ["fast", "default"])
+def test_each_preset_renders_as_the_library_renders_it(preset, tmp_path, camera):
+    """Both presets' evaluation fields (the default's for 400-pixel images: hashed levels and
+    empty-space skipping, at a tiny table size) in the plugin."""
     assert register()
-    cfg = FieldConfig.preset("default", width=400, log2_table_size=12, n_samples=32, batch_rays=512,
+    cfg = FieldConfig.preset(preset, width=400, log2_table_size=12, n_samples=32, batch_rays=512,
                              render_batch=1024, occupancy_warmup=1, occupancy_interval=1)
     path = trained_field(tmp_path / "field.npz", cfg)
-    assert Ensemble.load(path).occupancy() is not None
+    assert (Ensemble.load(path).occupancy() is not None) == (preset == "default")
     _, img = render(path, pixel_centre_sensor(camera), linear=False)
     p = Ensemble.load(path).predict(*camera_rays(camera))
     flat = img.reshape(-1, img.shape[-1])
@@ -89,6 +91,8 @@ def test_the_default_preset_renders_as_the_library_renders_it(tmp_path, camera):
     diff = np.abs(flat[:, :3] - p["rgb_mean"]).max(axis=1)
     assert np.mean(diff < 1e-5) > 0.9 and diff.max() < 1e-2, diff.max()
     assert np.abs(flat[:, 8] - p["opacity"]).max() < 1e-2 and p["opacity"].max() > 0.05
+    if preset == "fast":  # nothing skipped: every pixel as the library renders it
+        assert diff.max() < 1e-5 and np.abs(flat[:, 6] - p["distance_mean"]).max() < 1e-4
 
 
 def test_a_view_dependent_field_renders_as_the_library_renders_it(tmp_path, camera):

@@ -82,11 +82,12 @@ RAY_OPTION_NAMES = {f.name: "--" + f.name.replace("_", "-") for f in fields(RayO
 # Local worker processes
 # ---------------------------------------------------------------------------
 
-def run_local(jobs: list, workers: int, bar) -> None:
+def run_local(jobs: list, workers: int, bar, run_job) -> None:
     """Run the jobs here (one worker) or in up to ``workers`` fresh processes (Dr.Jit
-    must not be forked once initialised), which share the cores; Ctrl-C stops them all and is raised here."""
-    from .bench import run_job
+    must not be forked once initialised), which share the cores; Ctrl-C stops them all and is raised here.
 
+    ``run_job(job, threads)`` runs one job and returns its status (a module-level
+    function: the workers import it by name)."""
     if workers == 1:
         for job in jobs:
             bar.set_postfix_str(f"{job.scene}/{job.planner}/{job.seed}")
@@ -109,7 +110,7 @@ def run_local(jobs: list, workers: int, bar) -> None:
         finally:
             if main_thread:  # None: a handler not set from Python, which cannot be put back
                 signal.signal(signal.SIGINT, signal.default_int_handler if handler is None else handler)
-        for status in pool.imap_unordered(_run_job_star, [(j, threads) for j in jobs]):
+        for status in pool.imap_unordered(_run_job_star, [(run_job, j, threads) for j in jobs]):
             bar.set_postfix_str(status["job"])
             bar.update()
         pool.close()
@@ -184,12 +185,11 @@ _worker_busy = False
 
 
 def _run_job_star(args):
-    from .bench import run_job
-
+    run_job, *rest = args
     global _worker_busy
     _worker_busy = True
     try:
-        return run_job(*args)
+        return run_job(*rest)
     finally:
         _worker_busy = False
 
@@ -248,10 +248,11 @@ def ray_session(options: RayOptions):
         ray.shutdown()
 
 
-def run_ray(jobs: list, options: RayOptions, bar) -> None:
+def run_ray(jobs: list, options: RayOptions, bar, run_job) -> None:
     """Run the jobs as Ray tasks and write what the workers send back; the first
     run that fails (or whose worker dies more than ``options.retries`` times)
-    cancels the others and is raised here, as is Ctrl-C."""
+    cancels the others and is raised here, as is Ctrl-C. ``run_job``: as
+    :func:`run_local` takes it."""
     import mitsuba as mi
 
     gpus = options.gpus_per_run
@@ -271,7 +272,7 @@ def run_ray(jobs: list, options: RayOptions, bar) -> None:
                               config={**job.config, "scene": os.path.abspath(job.config["scene"])})
                 # The scene's files by reference: Ray hands a task the objects of its own arguments.
                 scene, planner, run = _inputs(job, bundles, ray)
-                pending[task.remote(job, threads, options.storage, _folder_id(Path(job.out).parents[2]),
+                pending[task.remote(run_job, job, threads, options.storage, _folder_id(Path(job.out).parents[2]),
                                     scene, planner, run)] = job
             while pending:
                 done, _ = ray.wait(list(pending), num_returns=1)
@@ -347,11 +348,10 @@ def _inputs(job, bundles: dict, ray) -> tuple:
     return bundles[job.scene_xml], planner, run
 
 
-def _ray_task(job, threads: int, storage: str, folder_id, scene: dict, planner: dict | None, run: dict) -> dict:
-    """One run, in a Ray worker: in the suite folder when this worker sees it,
-    else in a scratch folder whose run folder goes back to the driver."""
-    from .bench import run_job
-
+def _ray_task(run_job, job, threads: int, storage: str, folder_id, scene: dict, planner: dict | None,
+              run: dict) -> dict:
+    """One run (``run_job``, as :func:`run_local` takes it), in a Ray worker: in the suite
+    folder when this worker sees it, else in a scratch folder whose run folder goes back to the driver."""
     _show_warnings_as_lines()
     if storage == "auto" and _sees(folder_id):
         return run_job(job, threads)

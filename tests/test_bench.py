@@ -281,10 +281,10 @@ def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
                for c in summary["cells"])
     # With rfe's run of one scene missing, the summary averages the other scene alone, as
     # table_mean.md does, and each planner keeps its colour.
-    import mitsuba_active.report as report_module
+    import mitsuba_active.bench.tables as tables_module
 
     plots = []
-    monkeypatch.setattr(report_module, "plot_metrics", lambda series, out, title="", bands=None, colors=None:
+    monkeypatch.setattr(tables_module, "plot_metrics", lambda series, out, title="", bands=None, colors=None:
                         plots.append((title, {p: [r["views"] for r in rows] for p, rows in series.items()}, colors)))
     hidden = out / "runs" / "simple" / "rfe-seed0"
     hidden.rename(tmp_path / "hidden")

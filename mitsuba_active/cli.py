@@ -8,11 +8,7 @@ exit code 2.
 from __future__ import annotations
 
 import functools
-import json
 import os
-import re
-import secrets
-import shutil
 import signal
 import sys
 import threading
@@ -34,7 +30,7 @@ with interruptible_imports():  # click and numpy load here, after the package's 
     from .errors import FolderError, UserError
     from .executors import EXECUTORS, RAY_OPTION_NAMES, STORAGE, RayOptions
     from .field.config import DEFAULT_PRESET, FIELD_PRESETS
-    from .imageio_utils import folder_name, new_entries, remove_new
+    from .imageio_utils import folder_name
     from .scene import DEFAULT_COLOR, UP_AXES, SceneOptions
     from .scenes import BUNDLED_SCENE
     from .travel import TRAVEL_SETTINGS
@@ -289,10 +285,8 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
 
     SCENE_XML defaults to the bundled scene.
     """
-    from tqdm import tqdm
-
     from .env import SceneSource
-    from .imageio_utils import colorize, srgb_to_linear, write_exr, write_png
+    from .renders import render_views
 
     if not out.strip():  # '' would be the current folder
         raise UserError("-o/--output names no folder; give one, e.g. -o views")
@@ -305,54 +299,10 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
             raise UserError(f"--views must be positive, got {views}")
         cams = cams[:views]
     out = Path(out)
-    new = new_entries(out)
-    # Views are rendered into a hidden folder and moved in at the end, so that
-    # an interrupted render leaves an earlier render in OUT as it was.
-    stage = out / f".render-{secrets.token_hex(6)}"
-    records = []
-    try:
-        stage.mkdir(parents=True)
-        for i, cam in enumerate(tqdm(cams, desc="rendering", unit="view", disable=quiet)):
-            v = source.groundtruth.render(cam)
-            stem = f"{split[:4]}_{i:03d}"
-            write_exr(stage / f"{stem}.exr", {"RGB": srgb_to_linear(v.rgb), "Z": v.distance})
-            write_png(stage / f"{stem}.png", v.rgb)
-            write_png(stage / f"{stem}_distance.png", colorize(v.distance, v.mask))
-            records.append({"file": f"{stem}.png", **cam.to_dict(), "intrinsics": cam.intrinsics().tolist()})
-        (stage / "cameras.json").write_text(json.dumps({"scene": str(source.scene.path), "split": split,
-                                                        "views": records}, indent=1))
-        earlier = _rendered_files(out / "cameras.json")
-        written = {p.name for p in stage.iterdir()} - {"cameras.json"}
-        with interrupts_deferred():  # the views, their cameras.json, then the earlier render's other views
-            for name in sorted(written):
-                os.replace(stage / name, out / name)
-            os.replace(stage / "cameras.json", out / "cameras.json")
-            for name in sorted(earlier - written):
-                (out / name).unlink(missing_ok=True)
-    except BaseException:
-        remove_new(out, *new)  # views without their cameras.json are no use to anyone
-        raise
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
+    render_views(source, cams, split, out, progress=not quiet)
     for note in _auto_rig_note(rig, source):
         click.echo(note, err=True)
     click.echo(f"wrote {len(cams)} view{'' if len(cams) == 1 else 's'} to {out}")
-
-
-#: The files ``render`` writes for a view: its EXR, its PNG and the PNG of its distances.
-_RENDERED = re.compile(r"(cand|held)_\d{3,}(\.exr|\.png|_distance\.png)")
-
-
-def _rendered_files(cameras_json: Path) -> set[str]:
-    """The files of the render that wrote ``cameras_json`` (only names that ``render`` writes,
-    so no other file is ever removed); none if there is no such render."""
-    try:
-        views = json.loads(cameras_json.read_text()).get("views", [])
-        stems = {Path(v["file"]).stem for v in views}
-    except (OSError, ValueError, AttributeError, KeyError, TypeError, RecursionError):
-        return set()
-    names = {stem + end for stem in stems if isinstance(stem, str) for end in (".exr", ".png", "_distance.png")}
-    return {n for n in names if _RENDERED.fullmatch(n)}
 
 
 def _parse_options(items) -> dict:

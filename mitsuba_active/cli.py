@@ -18,22 +18,33 @@ from pathlib import Path
 
 from .interrupts import interruptible_imports, interrupts_deferred, sigterm_as_interrupt
 
-with interruptible_imports():  # click and numpy load here, after the package's own imports
+with interruptible_imports():  # click, numpy and the libraries below load here, after the package's own imports
     import click
     from click.core import ParameterSource
+    from tqdm import tqdm
 
-    from .bench import PROFILES
-    from .cameras import RIG_KINDS
-    from .checks import nearest
+    from .bench import PROFILES, parse_overrides, run_suite
+    from .cameras import RIG_KINDS, auto_rig
+    from .checks import nearest, setting_value
     from .console import mitsuba_log_as_warnings, one_line, show_warning
     from .embodiments import EMBODIMENTS
     from .errors import FolderError, UserError
     from .executors import EXECUTORS, RAY_OPTION_NAMES, STORAGE, RayOptions
+    from .export import export_transforms
     from .field.config import DEFAULT_PRESET, FIELD_PRESETS
     from .imageio_utils import folder_name
-    from .scene import DEFAULT_COLOR, UP_AXES, SceneOptions
+    from .planners import make_planner
+    from .planners.base import registered_name
+    from .renders import render_views
+    from .report import _plt
+    from .run import INTERIOR_DISTANCE_WEIGHT, Run, RunConfig, default_out_dir, undone_unless_resumable
+    from .scene import (DEFAULT_COLOR, MESH_SUFFIXES, UP_AXES, SceneOptions, authoring_notes, content_hash,
+                        scene_from_mesh)
     from .scenes import BUNDLED_SCENE
+    from .sources import SceneSource
+    from .training import FIT_GAIN_DB, FLOOR_MARGIN_DB
     from .travel import TRAVEL_SETTINGS
+    from .viewer import serve
 
 
 def _os_error_line(exc: OSError) -> str:
@@ -91,19 +102,12 @@ def _error_line(exc: Exception) -> str:
 
 
 def _load_libraries() -> None:
-    """Import the libraries the commands use, with Ctrl-C held back (see
-    :mod:`.interrupts`): an interrupt then stops the command cleanly, not an
-    import halfway (trimesh's imports swallow it, and a swallowed interrupt
-    ends the process by SIGINT after a successful command)."""
-    import imageio.v3  # noqa: F401
-    import OpenEXR  # noqa: F401
-    import tqdm  # noqa: F401
-    import trimesh  # noqa: F401
-
-    from . import bench, export, run, scene  # noqa: F401
-    from .report import _plt
-
-    _plt()  # matplotlib with its file-only backend
+    """Load matplotlib's pyplot (with its file-only backend) with Ctrl-C held back
+    (see :mod:`.interrupts`), as the module's imports load the other libraries
+    (trimesh's imports swallow an interrupt, and a swallowed interrupt ends the
+    process by SIGINT after a successful command): an interrupt then stops the
+    command cleanly, not an import halfway."""
+    _plt()
 
 
 def _close_progress_bars() -> None:
@@ -224,8 +228,6 @@ def scene(mesh, out, up, color, texture, no_texture, env_radiance, sun, point_li
 
     MESH is an OBJ, PLY, STL, GLB, glTF or OFF file.
     """
-    from .scene import authoring_notes, scene_from_mesh
-
     if texture is not None and no_texture:
         raise UserError("give --texture FILE or --no-texture, not both")
     path = scene_from_mesh(mesh, out, up=up, color=None if color is None else tuple(color),
@@ -285,9 +287,6 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
 
     SCENE_XML defaults to the bundled scene.
     """
-    from .env import SceneSource
-    from .renders import render_views
-
     if not out.strip():  # '' would be the current folder
         raise UserError("-o/--output names no folder; give one, e.g. -o views")
     _check_rig_options(rig)
@@ -307,8 +306,6 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
 
 def _parse_options(items) -> dict:
     """``NAME=VALUE`` strings to a dict; values are read as ``bench --set`` reads them (TOML, else text)."""
-    from .checks import setting_value
-
     options = {}
     for item in items:
         name, sep, text = item.partition("=")
@@ -376,11 +373,6 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     scene. Writes run.json, metrics.csv, plots, a contact sheet of the chosen
     views and held-out renders.
     """
-    from .planners import make_planner
-    from .planners.base import registered_name
-    from .run import RunConfig, default_out_dir, undone_unless_resumable
-    from .scene import MESH_SUFFIXES, authoring_notes
-
     scene_path = str(scene_path or BUNDLED_SCENE)
     planner = registered_name(planner)  # in any case: --planner RFE is rfe
     given = _given_options()
@@ -433,8 +425,6 @@ def _author_into_run(mesh, out: Path) -> str:
 
     A folder holding a run of another scene is refused before its scene is replaced.
     """
-    from .scene import content_hash, scene_from_mesh
-
     target = out / "scene" / f"{Path(mesh).stem}.xml"
 
     def same_scene(digest: str) -> None:
@@ -453,9 +443,6 @@ def _given_options() -> set[str]:
 
 def _auto_rig_note(rig: str, source) -> list[str]:
     """Which rig ``--rig auto`` chose for a scene, why, and how to choose another: a line, or none."""
-    from .cameras import auto_rig
-    from .env import SceneSource
-
     if rig != "auto" or not isinstance(source, SceneSource):
         return []
     chosen, why = auto_rig(source.scene)
@@ -468,11 +455,6 @@ def _plan(cfg, out: Path, quiet: bool, given=frozenset(), notes=()) -> dict:
 
     ``given``: the options given on the command line, which must apply; ``notes``: lines to
     print as the run starts."""
-    from tqdm import tqdm
-
-    from .env import SceneSource
-    from .run import INTERIOR_DISTANCE_WEIGHT, Run
-
     source = cfg.open_source()
     if cfg.downscale is not None and isinstance(source, SceneSource):
         raise UserError("--downscale applies to datasets; a scene renders at --resolution")
@@ -507,8 +489,6 @@ def export(run_dir, out):
 
     The dataset reads in nerfstudio and instant-ngp, split as the run was.
     """
-    from .export import export_transforms
-
     click.echo(f"wrote {export_transforms(run_dir, out)}")
 
 
@@ -535,8 +515,6 @@ def view(run_dir, host, port, follow):
     Clicking a camera renders the planner's ensemble's mean and variance from it. Needs
     the viewer extra: pip install 'mitsuba-active[viewer]'.
     """
-    from .viewer import serve
-
     serve(run_dir, host, port, follow, log=lambda m: click.echo(m, err=True))
 
 
@@ -570,8 +548,6 @@ def bench(suite, out, profile, workers, executor, seeds, planners, scenes, field
 
     Writes tables and plots of its finished runs into report/ in the suite folder (--out).
     """
-    from .bench import parse_overrides, run_suite
-
     given = _given_options()
     if executor != "ray":
         named = [RAY_OPTION_NAMES[k] for k in ray_options if k in given]
@@ -614,8 +590,6 @@ def bench(suite, out, profile, workers, executor, seeds, planners, scenes, field
             click.echo(f"note: the report covers {summary['runs_reported']} of the suite's {summary['runs']} runs; "
                        "the others have not finished with these settings and planner code", err=True)
         if summary["short_training"]:
-            from .training import FIT_GAIN_DB, FLOOR_MARGIN_DB
-
             click.echo(f"note: in {summary['short_training']} of the reported runs the evaluation field scores less "
                        f"than {FLOOR_MARGIN_DB:g} dB above the background colour alone on the held-out views, or fits "
                        f"its own training views less than {FIT_GAIN_DB:g} dB better than at its first steps: raise "

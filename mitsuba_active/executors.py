@@ -14,6 +14,7 @@ the run folder back, which the driver then puts in place whole.
 from __future__ import annotations
 
 import contextlib
+import multiprocessing as mp
 import os
 import signal
 import socket
@@ -24,8 +25,14 @@ import warnings
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
+import mitsuba as mi
+from tqdm import tqdm
+
+from .console import mitsuba_log_as_warnings, show_warning
 from .errors import UserError
 from .imageio_utils import replaced_folder
+from .planners.base import is_planner_file
+from .scene import referenced_files
 
 #: The executors, and what each one runs the suite's runs on.
 EXECUTORS = {"local": "worker processes on this machine (--workers)",
@@ -94,7 +101,6 @@ def run_local(jobs: list, workers: int, bar, run_job) -> None:
             run_job(job)
             bar.update()
         return
-    import multiprocessing as mp
 
     workers = max(1, min(workers, len(jobs)))  # a worker without a job would only start and stop
     threads = max(1, (os.cpu_count() or 1) // workers)
@@ -126,8 +132,6 @@ def _stop_pool(pool, patience: float = 10.0) -> None:
     for them; should that not end within ``patience`` seconds (a worker or
     the pool's own bookkeeping stuck), end them outright, so that an
     interrupted suite always stops."""
-    import multiprocessing as mp
-
     stopper = threading.Thread(target=pool.terminate, daemon=True)
     stopper.start()
     stopper.join(patience)
@@ -144,8 +148,6 @@ def _init_worker(parent: int):
     is gone (killed outright) stops itself the same way. tqdm's lock is a
     thread lock here: its default, a multiprocessing lock, would be reported
     as leaked when a worker stops."""
-    from tqdm import tqdm
-
     def stop(signum, frame):
         signal.signal(signal.SIGTERM, signal.SIG_IGN)  # one stop; its clean-up is not cut short
         if not _worker_busy:
@@ -169,8 +171,6 @@ def _init_worker(parent: int):
 
 def _show_warnings_as_lines() -> None:
     """Warnings, Mitsuba's too, as the command line shows them: plain lines on stderr."""
-    from .console import mitsuba_log_as_warnings, show_warning
-
     warnings.showwarning = show_warning
     if not _WORKER_LOGGING._exit_callbacks:  # once per process
         _WORKER_LOGGING.enter_context(mitsuba_log_as_warnings())
@@ -253,8 +253,6 @@ def run_ray(jobs: list, options: RayOptions, bar, run_job) -> None:
     run that fails (or whose worker dies more than ``options.retries`` times)
     cancels the others and is raised here, as is Ctrl-C. ``run_job``: as
     :func:`run_local` takes it."""
-    import mitsuba as mi
-
     gpus = options.gpus_per_run
     if gpus is None:
         gpus = GPU_SHARE if (mi.variant() or "").startswith("cuda") else 0.0
@@ -330,9 +328,6 @@ def _inputs(job, bundles: dict, ray) -> tuple:
     """What a worker without the suite folder needs to run ``job``: the scene's
     files (its XML and the files it names, below their common folder), a
     planner file of the user's own, and the files the run folder holds."""
-    from .planners.base import is_planner_file
-    from .scene import referenced_files
-
     xml = Path(job.scene_xml)
     if job.scene_xml not in bundles:
         files = [xml.resolve(), *(p.resolve() for p in referenced_files(xml))]

@@ -922,7 +922,7 @@ def test_a_variants_options_are_checked_before_anything_runs(tiny_suite, tmp_pat
 
 
 def test_bench_field_sets_every_runs_preset(tiny_suite, tmp_path, monkeypatch):
-    import mitsuba_active.bench as bench_module
+    import mitsuba_active.cli as cli_module
 
     seen = {}
 
@@ -931,7 +931,7 @@ def test_bench_field_sets_every_runs_preset(tiny_suite, tmp_path, monkeypatch):
         return {"unreported_seeds": [], "cells": [], "runs_reported": 0, "runs": 0, "short_training": 0,
                 "versions": []}
 
-    monkeypatch.setattr(bench_module, "run_suite", fake_run_suite)
+    monkeypatch.setattr(cli_module, "run_suite", fake_run_suite)
     monkeypatch.chdir(tmp_path)
     res = CliRunner().invoke(main, ["bench", str(tiny_suite), "--field", "fast"])
     assert res.exit_code == 0, res.output

@@ -22,6 +22,7 @@ import numpy as np
 
 from ..checks import choice_named, is_whole, not_a_file, unknown_choice
 from ..errors import UserError
+from ..field import Ensemble
 from ..imageio_utils import folder_name
 
 
@@ -88,8 +89,6 @@ class Planner:
         """The field a run trains for this planner (with ``needs_ensemble``):
         an :class:`~mitsuba_active.field.Ensemble` of ``n_members``. A run
         resumes with the saved field, read by that field's class's ``load``."""
-        from ..field import Ensemble
-
         return Ensemble(bbox_min, bbox_max, n_members=n_members, config=config, seed=seed)
 
     def ensemble_size(self, requested: int) -> int:

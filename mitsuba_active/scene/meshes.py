@@ -12,7 +12,9 @@ import re
 import warnings
 from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
+import trimesh
 
 from ..checks import not_a_file
 from ..errors import UserError, brief
@@ -28,8 +30,6 @@ DEFAULT_COLOR = (0.45, 0.3, 0.2)
 
 def load_mesh(path) -> "trimesh.Trimesh":
     """Load one triangle mesh with trimesh; UserError when missing, unreadable, empty or degenerate."""
-    import trimesh
-
     path = Path(path)
     if not path.is_file():
         raise UserError(not_a_file(path, "mesh file"))
@@ -186,8 +186,6 @@ def _material_parts(mesh_path: Path, mesh) -> list | None:
     materials into a texture atlas of its own and pointing their UVs into it: the
     parts keep each material and the file's own UVs.
     """
-    import trimesh
-
     suffix = mesh_path.suffix.lower()
     if suffix not in (".obj", ".gltf", ".glb") or (
             suffix == ".obj" and not re.search(rb"^mtllib[ \t]", mesh_path.read_bytes(), re.M)):
@@ -242,8 +240,6 @@ def embedded_image(mesh):
 
 def _check_image(path: Path) -> tuple[int, int]:
     """The (width, height) of ``path``; UserError unless it is an image file that Mitsuba's bitmap texture reads."""
-    import mitsuba as mi
-
     if not path.is_file():
         raise UserError(f"texture {path} is not a file")
     try:

@@ -517,7 +517,7 @@ def _film_height(sensors, width: int) -> int:
 
 def _check_count(n):
     if int(n) <= 0:
-        raise UserError(f"a rig needs at least one camera, got {n}")
+        raise ValueError(f"a rig needs at least one camera, got {n}")
 
 
 def check_disjoint(candidates, heldout, tol=1e-6):

@@ -47,7 +47,7 @@ def test_train_on_without_views(source):
 
     ens = make_ensemble(source, RunConfig(scene=str(source.scene.path), field=TINY["field"]), 1, seed=0)
     assert train_on(ens, [], 0).shape == (0,)
-    with pytest.raises(UserError, match=r"train_on: no views to train on \(5 steps asked for\)"):
+    with pytest.raises(ValueError, match=r"train_on: no views to train on \(5 steps asked for\)"):
         train_on(ens, [], 5)
     with pytest.raises(UserError, match="steps must be a whole number"):
         train_on(ens, [source.candidate_view(0)], -1)

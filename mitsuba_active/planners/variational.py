@@ -10,7 +10,6 @@ same grid as the other planners.
 
 from __future__ import annotations
 
-from ..errors import UserError
 from ..field import VariationalField
 from ..field.variational import DEFAULT_DRAWS, DEFAULT_ENTROPY_WEIGHT, DEFAULT_MAX_STD, check_options
 from .base import register
@@ -43,7 +42,7 @@ class VariationalPlanner(RFEPlanner):
 
         # A plain ensemble of one member has no spread to score: every candidate would score 0.
         if not isinstance(state.ensemble, VariationalField):
-            raise UserError(f"the {self.name} planner scores with a VariationalField (its make_field), "
+            raise TypeError(f"the {self.name} planner scores with a VariationalField (its make_field), "
                             f"got {type(state.ensemble).__name__}")
 
     def make_field(self, bbox_min, bbox_max, n_members, config, seed):

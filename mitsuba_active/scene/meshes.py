@@ -285,7 +285,7 @@ def normalise_vertices(vertices: np.ndarray, up: str = "y") -> np.ndarray:
     if up == "z":  # (x, y, z) -> (x, z, -y): Z-up becomes Y-up, right-handed
         v = np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1)
     elif up != "y":
-        raise UserError(f"--up must be 'y' or 'z', got '{up}'")
+        raise ValueError(f"up must be 'y' or 'z', got '{up}'")
     lo, hi = v.min(axis=0), v.max(axis=0)
     return (v - 0.5 * (lo + hi)) / float(np.max(hi - lo))
 

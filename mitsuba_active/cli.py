@@ -28,7 +28,7 @@ with interruptible_imports():  # click, numpy and the libraries below load here,
     from .checks import nearest, setting_value
     from .console import mitsuba_log_as_warnings, one_line, show_warning
     from .embodiments import EMBODIMENTS
-    from .errors import FolderError, UserError
+    from .errors import FolderError, UserError, os_error_line
     from .executors import EXECUTORS, RAY_OPTION_NAMES, STORAGE, RayOptions
     from .export import export_transforms
     from .field.config import DEFAULT_PRESET, FIELD_PRESETS
@@ -45,20 +45,6 @@ with interruptible_imports():  # click, numpy and the libraries below load here,
     from .training import FIT_GAIN_DB, FLOOR_MARGIN_DB
     from .travel import TRAVEL_SETTINGS
     from .viewer import serve
-
-
-def _os_error_line(exc: OSError) -> str:
-    """One line for a failed file operation; names the file that stands where a folder must be."""
-    if isinstance(exc, (FileExistsError, NotADirectoryError)) and exc.filename:
-        path = Path(exc.filename)
-        blocker = next((p for p in [path, *path.parents] if p.is_file()), None)
-        if blocker is not None:
-            return f"{blocker} is a file, where a folder is needed"
-    # A failed rename (every output is written to a hidden temporary name, then
-    # renamed) names the output it was to become, not the temporary file.
-    name = exc.filename2 or exc.filename
-    where = f"{name}: " if name else ""
-    return f"{where}{exc.strerror or exc}"
 
 
 #: Where a command keeps the output folder it writes (``ctx.meta``), once its default is filled in.
@@ -95,7 +81,7 @@ def _error_line(exc: Exception) -> str:
         named = _naming_output([exc.folder], around=False)
         return f"{named}: {exc.reason}" if named else str(exc)
     if isinstance(exc, OSError):
-        line = _os_error_line(exc)
+        line = os_error_line(exc)
         named = _naming_output([exc.filename, exc.filename2], around=True)
         return f"{named}: {line}" if named else line
     return str(exc)

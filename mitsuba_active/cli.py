@@ -88,11 +88,13 @@ def _error_line(exc: Exception) -> str:
 
 
 def _load_libraries() -> None:
-    """Load matplotlib's pyplot (with its file-only backend) with Ctrl-C held back
-    (see :mod:`.interrupts`), as the module's imports load the other libraries
-    (trimesh's imports swallow an interrupt, and a swallowed interrupt ends the
-    process by SIGINT after a successful command): an interrupt then stops the
-    command cleanly, not an import halfway."""
+    """Load the libraries that the package loads when first used, trimesh and
+    matplotlib's pyplot (with its file-only backend), with Ctrl-C held back (see
+    :mod:`.interrupts`) and SIGTERM handled: an interrupt then stops the
+    command cleanly, not an import halfway (trimesh's imports swallow it, and
+    a swallowed interrupt ends the process by SIGINT after a successful command)."""
+    import trimesh  # noqa: F401  (here, not above: under the command's SIGTERM handler)
+
     _plt()
 
 

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import mitsuba as mi
 import numpy as np
-import trimesh
 
 from ..checks import not_a_file
 from ..errors import UserError, brief
@@ -30,6 +29,9 @@ DEFAULT_COLOR = (0.45, 0.3, 0.2)
 
 def load_mesh(path) -> "trimesh.Trimesh":
     """Load one triangle mesh with trimesh; UserError when missing, unreadable, empty or degenerate."""
+    # trimesh (1 s to import) loads when a mesh is read: the command line loads it with SIGTERM handled.
+    import trimesh
+
     path = Path(path)
     if not path.is_file():
         raise UserError(not_a_file(path, "mesh file"))
@@ -186,6 +188,8 @@ def _material_parts(mesh_path: Path, mesh) -> list | None:
     materials into a texture atlas of its own and pointing their UVs into it: the
     parts keep each material and the file's own UVs.
     """
+    import trimesh  # as in load_mesh
+
     suffix = mesh_path.suffix.lower()
     if suffix not in (".obj", ".gltf", ".glb") or (
             suffix == ".obj" and not re.search(rb"^mtllib[ \t]", mesh_path.read_bytes(), re.M)):

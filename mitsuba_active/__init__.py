@@ -14,6 +14,7 @@ The import also registers the gymnasium environment :data:`ENV_ID`
 """
 
 import sys
+import warnings
 
 import gymnasium
 
@@ -40,12 +41,11 @@ try:
     with interruptible_imports():
         set_variant()
         try:  # Mitsuba plugins (the "radiance_field" integrator): cheap, and never fatal
+            # Imported here, not above: the plugins load Mitsuba's variant, which set_variant() chose.
             from .plugins import register as _register_plugins
 
             _register_plugins()
         except Exception as exc:  # pragma: no cover
-            import warnings
-
             warnings.warn(f"mitsuba-active: Mitsuba plugins not registered ({exc})")
 except UserError as exc:
     sys.excepthook = _one_line_setup_error

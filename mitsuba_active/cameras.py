@@ -18,7 +18,10 @@ import warnings
 from dataclasses import dataclass, field
 from fractions import Fraction
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .checks import is_number, is_whole, unknown_choice
 from .errors import UserError
@@ -145,8 +148,6 @@ class Camera:
 
     def sensor(self, spp: int = 1):
         """A Mitsuba ``perspective`` sensor for this camera (box pixel filter)."""
-        import mitsuba as mi
-
         return mi.load_dict({
             "type": "perspective",
             "fov": float(self.fov),
@@ -179,9 +180,6 @@ def sensor_rays_dr(sensor, width: int, height: int):
     optical centre (Mitsuba itself starts camera rays on the near plane), so
     ray parameters are metric distances from the centre.
     """
-    import drjit as dr
-    import mitsuba as mi
-
     idx = dr.arange(mi.UInt32, width * height)
     x, y = idx % width, idx // width
     pos = mi.Point2f((mi.Float(x) + 0.5) / width, (mi.Float(y) + 0.5) / height)
@@ -236,8 +234,6 @@ def places_apart(taken: np.ndarray, pool: np.ndarray, targets: np.ndarray, radiu
 
     Held-out views then keep the targets' even spread (the held-out spiral), each moved into the
     largest gap between candidate views near it, never next to a candidate."""
-    from scipy.spatial import cKDTree
-
     pool = np.asarray(pool, dtype=np.float64)
     cap = 2.0 * radius  # farther gaps choose nothing within reach, and bound each update
     gap = np.minimum(cKDTree(taken).query(pool)[0], cap) if len(taken) else np.full(len(pool), cap)
@@ -521,14 +517,13 @@ def _film_height(sensors, width: int) -> int:
 
 def _check_count(n):
     if int(n) <= 0:
-        raise UserError(f"a rig needs at least one camera, got {n}")
+        raise ValueError(f"a rig needs at least one camera, got {n}")
 
 
 def check_disjoint(candidates, heldout, tol=1e-6):
     """Raise if a held-out camera coincides with a candidate camera."""
     if not candidates or not heldout:
         return
-    from scipy.spatial import cKDTree
 
     a = np.stack([c.to_world.ravel() for c in candidates])
     b = np.stack([c.to_world.ravel() for c in heldout])

@@ -8,11 +8,7 @@ exit code 2.
 from __future__ import annotations
 
 import functools
-import json
 import os
-import re
-import secrets
-import shutil
 import signal
 import sys
 import threading
@@ -22,36 +18,33 @@ from pathlib import Path
 
 from .interrupts import interruptible_imports, interrupts_deferred, sigterm_as_interrupt
 
-with interruptible_imports():  # click and numpy load here, after the package's own imports
+with interruptible_imports():  # click, numpy and the libraries below load here, after the package's own imports
     import click
     from click.core import ParameterSource
+    from tqdm import tqdm
 
-    from .bench import PROFILES
-    from .cameras import RIG_KINDS
-    from .checks import nearest
+    from .bench import PROFILES, parse_overrides, run_suite
+    from .cameras import RIG_KINDS, auto_rig
+    from .checks import nearest, setting_value
     from .console import mitsuba_log_as_warnings, one_line, show_warning
     from .embodiments import EMBODIMENTS
-    from .errors import FolderError, UserError
+    from .errors import FolderError, UserError, os_error_line
     from .executors import EXECUTORS, RAY_OPTION_NAMES, STORAGE, RayOptions
+    from .export import export_transforms
     from .field.config import DEFAULT_PRESET, FIELD_PRESETS
-    from .imageio_utils import folder_name, new_entries, remove_new
-    from .scene import DEFAULT_COLOR, UP_AXES, SceneOptions
+    from .imageio_utils import folder_name
+    from .planners import make_planner
+    from .planners.base import registered_name
+    from .renders import render_views
+    from .report import _plt
+    from .run import INTERIOR_DISTANCE_WEIGHT, Run, RunConfig, default_out_dir, undone_unless_resumable
+    from .scene import (DEFAULT_COLOR, MESH_SUFFIXES, UP_AXES, SceneOptions, authoring_notes, content_hash,
+                        scene_from_mesh)
     from .scenes import BUNDLED_SCENE
+    from .sources import SceneSource
+    from .training import FIT_GAIN_DB, FLOOR_MARGIN_DB
     from .travel import TRAVEL_SETTINGS
-
-
-def _os_error_line(exc: OSError) -> str:
-    """One line for a failed file operation; names the file that stands where a folder must be."""
-    if isinstance(exc, (FileExistsError, NotADirectoryError)) and exc.filename:
-        path = Path(exc.filename)
-        blocker = next((p for p in [path, *path.parents] if p.is_file()), None)
-        if blocker is not None:
-            return f"{blocker} is a file, where a folder is needed"
-    # A failed rename (every output is written to a hidden temporary name, then
-    # renamed) names the output it was to become, not the temporary file.
-    name = exc.filename2 or exc.filename
-    where = f"{name}: " if name else ""
-    return f"{where}{exc.strerror or exc}"
+    from .viewer import serve
 
 
 #: Where a command keeps the output folder it writes (``ctx.meta``), once its default is filled in.
@@ -88,26 +81,21 @@ def _error_line(exc: Exception) -> str:
         named = _naming_output([exc.folder], around=False)
         return f"{named}: {exc.reason}" if named else str(exc)
     if isinstance(exc, OSError):
-        line = _os_error_line(exc)
+        line = os_error_line(exc)
         named = _naming_output([exc.filename, exc.filename2], around=True)
         return f"{named}: {line}" if named else line
     return str(exc)
 
 
 def _load_libraries() -> None:
-    """Import the libraries the commands use, with Ctrl-C held back (see
-    :mod:`.interrupts`): an interrupt then stops the command cleanly, not an
-    import halfway (trimesh's imports swallow it, and a swallowed interrupt
-    ends the process by SIGINT after a successful command)."""
-    import imageio.v3  # noqa: F401
-    import OpenEXR  # noqa: F401
-    import tqdm  # noqa: F401
-    import trimesh  # noqa: F401
+    """Load the libraries that the package loads when first used, trimesh and
+    matplotlib's pyplot (with its file-only backend), with Ctrl-C held back (see
+    :mod:`.interrupts`) and SIGTERM handled: an interrupt then stops the
+    command cleanly, not an import halfway (trimesh's imports swallow it, and
+    a swallowed interrupt ends the process by SIGINT after a successful command)."""
+    import trimesh  # noqa: F401  (here, not above: under the command's SIGTERM handler)
 
-    from . import bench, export, run, scene  # noqa: F401
-    from .report import _plt
-
-    _plt()  # matplotlib with its file-only backend
+    _plt()
 
 
 def _close_progress_bars() -> None:
@@ -228,8 +216,6 @@ def scene(mesh, out, up, color, texture, no_texture, env_radiance, sun, point_li
 
     MESH is an OBJ, PLY, STL, GLB, glTF or OFF file.
     """
-    from .scene import authoring_notes, scene_from_mesh
-
     if texture is not None and no_texture:
         raise UserError("give --texture FILE or --no-texture, not both")
     path = scene_from_mesh(mesh, out, up=up, color=None if color is None else tuple(color),
@@ -289,11 +275,6 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
 
     SCENE_XML defaults to the bundled scene.
     """
-    from tqdm import tqdm
-
-    from .env import SceneSource
-    from .imageio_utils import colorize, srgb_to_linear, write_exr, write_png
-
     if not out.strip():  # '' would be the current folder
         raise UserError("-o/--output names no folder; give one, e.g. -o views")
     _check_rig_options(rig)
@@ -305,60 +286,14 @@ def render(scene_xml, out, rig, n_candidates, n_heldout, resolution, fov, spp, v
             raise UserError(f"--views must be positive, got {views}")
         cams = cams[:views]
     out = Path(out)
-    new = new_entries(out)
-    # Views are rendered into a hidden folder and moved in at the end, so that
-    # an interrupted render leaves an earlier render in OUT as it was.
-    stage = out / f".render-{secrets.token_hex(6)}"
-    records = []
-    try:
-        stage.mkdir(parents=True)
-        for i, cam in enumerate(tqdm(cams, desc="rendering", unit="view", disable=quiet)):
-            v = source.groundtruth.render(cam)
-            stem = f"{split[:4]}_{i:03d}"
-            write_exr(stage / f"{stem}.exr", {"RGB": srgb_to_linear(v.rgb), "Z": v.distance})
-            write_png(stage / f"{stem}.png", v.rgb)
-            write_png(stage / f"{stem}_distance.png", colorize(v.distance, v.mask))
-            records.append({"file": f"{stem}.png", **cam.to_dict(), "intrinsics": cam.intrinsics().tolist()})
-        (stage / "cameras.json").write_text(json.dumps({"scene": str(source.scene.path), "split": split,
-                                                        "views": records}, indent=1))
-        earlier = _rendered_files(out / "cameras.json")
-        written = {p.name for p in stage.iterdir()} - {"cameras.json"}
-        with interrupts_deferred():  # the views, their cameras.json, then the earlier render's other views
-            for name in sorted(written):
-                os.replace(stage / name, out / name)
-            os.replace(stage / "cameras.json", out / "cameras.json")
-            for name in sorted(earlier - written):
-                (out / name).unlink(missing_ok=True)
-    except BaseException:
-        remove_new(out, *new)  # views without their cameras.json are no use to anyone
-        raise
-    finally:
-        shutil.rmtree(stage, ignore_errors=True)
+    render_views(source, cams, split, out, progress=not quiet)
     for note in _auto_rig_note(rig, source):
         click.echo(note, err=True)
     click.echo(f"wrote {len(cams)} view{'' if len(cams) == 1 else 's'} to {out}")
 
 
-#: The files ``render`` writes for a view: its EXR, its PNG and the PNG of its distances.
-_RENDERED = re.compile(r"(cand|held)_\d{3,}(\.exr|\.png|_distance\.png)")
-
-
-def _rendered_files(cameras_json: Path) -> set[str]:
-    """The files of the render that wrote ``cameras_json`` (only names that ``render`` writes,
-    so no other file is ever removed); none if there is no such render."""
-    try:
-        views = json.loads(cameras_json.read_text()).get("views", [])
-        stems = {Path(v["file"]).stem for v in views}
-    except (OSError, ValueError, AttributeError, KeyError, TypeError, RecursionError):
-        return set()
-    names = {stem + end for stem in stems if isinstance(stem, str) for end in (".exr", ".png", "_distance.png")}
-    return {n for n in names if _RENDERED.fullmatch(n)}
-
-
 def _parse_options(items) -> dict:
     """``NAME=VALUE`` strings to a dict; values are read as ``bench --set`` reads them (TOML, else text)."""
-    from .checks import setting_value
-
     options = {}
     for item in items:
         name, sep, text = item.partition("=")
@@ -426,11 +361,6 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     scene. Writes run.json, metrics.csv, plots, a contact sheet of the chosen
     views and held-out renders.
     """
-    from .planners import make_planner
-    from .planners.base import registered_name
-    from .run import RunConfig, default_out_dir, undone_unless_resumable
-    from .scene import MESH_SUFFIXES, authoring_notes
-
     scene_path = str(scene_path or BUNDLED_SCENE)
     planner = registered_name(planner)  # in any case: --planner RFE is rfe
     given = _given_options()
@@ -483,8 +413,6 @@ def _author_into_run(mesh, out: Path) -> str:
 
     A folder holding a run of another scene is refused before its scene is replaced.
     """
-    from .scene import content_hash, scene_from_mesh
-
     target = out / "scene" / f"{Path(mesh).stem}.xml"
 
     def same_scene(digest: str) -> None:
@@ -503,9 +431,6 @@ def _given_options() -> set[str]:
 
 def _auto_rig_note(rig: str, source) -> list[str]:
     """Which rig ``--rig auto`` chose for a scene, why, and how to choose another: a line, or none."""
-    from .cameras import auto_rig
-    from .env import SceneSource
-
     if rig != "auto" or not isinstance(source, SceneSource):
         return []
     chosen, why = auto_rig(source.scene)
@@ -518,11 +443,6 @@ def _plan(cfg, out: Path, quiet: bool, given=frozenset(), notes=()) -> dict:
 
     ``given``: the options given on the command line, which must apply; ``notes``: lines to
     print as the run starts."""
-    from tqdm import tqdm
-
-    from .env import SceneSource
-    from .run import INTERIOR_DISTANCE_WEIGHT, Run
-
     source = cfg.open_source()
     if cfg.downscale is not None and isinstance(source, SceneSource):
         raise UserError("--downscale applies to datasets; a scene renders at --resolution")
@@ -557,8 +477,6 @@ def export(run_dir, out):
 
     The dataset reads in nerfstudio and instant-ngp, split as the run was.
     """
-    from .export import export_transforms
-
     click.echo(f"wrote {export_transforms(run_dir, out)}")
 
 
@@ -585,8 +503,6 @@ def view(run_dir, host, port, follow):
     Clicking a camera renders the planner's ensemble's mean and variance from it. Needs
     the viewer extra: pip install 'mitsuba-active[viewer]'.
     """
-    from .viewer import serve
-
     serve(run_dir, host, port, follow, log=lambda m: click.echo(m, err=True))
 
 
@@ -620,8 +536,6 @@ def bench(suite, out, profile, workers, executor, seeds, planners, scenes, field
 
     Writes tables and plots of its finished runs into report/ in the suite folder (--out).
     """
-    from .bench import parse_overrides, run_suite
-
     given = _given_options()
     if executor != "ray":
         named = [RAY_OPTION_NAMES[k] for k in ray_options if k in given]
@@ -664,8 +578,6 @@ def bench(suite, out, profile, workers, executor, seeds, planners, scenes, field
             click.echo(f"note: the report covers {summary['runs_reported']} of the suite's {summary['runs']} runs; "
                        "the others have not finished with these settings and planner code", err=True)
         if summary["short_training"]:
-            from .training import FIT_GAIN_DB, FLOOR_MARGIN_DB
-
             click.echo(f"note: in {summary['short_training']} of the reported runs the evaluation field scores less "
                        f"than {FLOOR_MARGIN_DB:g} dB above the background colour alone on the held-out views, or fits "
                        f"its own training views less than {FIT_GAIN_DB:g} dB better than at its first steps: raise "

@@ -1,4 +1,4 @@
-"""COLMAP projects as view sources (``sparse/0`` and ``images/``, read with pycolmap).
+"""COLMAP projects read: the frames and bounds of a sparse model (``sparse/0`` and ``images/``, with pycolmap).
 
 A project folder holds the sparse model ``sparse/0/{cameras,images,points3D}``
 (``.bin`` or ``.txt``) and the photographs in ``images/``. Each registered
@@ -7,18 +7,17 @@ its pose is COLMAP's world-to-camera in OpenCV axes (+X right, +Y down, +Z
 forward) turned into Mitsuba's camera-to-world, its camera model into the
 transforms.json keys the dataset reader undistorts by. The held-out frames
 are spread evenly over the images sorted by name; the scene's bounds are
-robust percentiles of the sparse points.
+robust percentiles of the sparse points. :func:`~mitsuba_active.datasets.colmap_source`
+makes the dataset source of a project.
 """
 
 from __future__ import annotations
 
-import hashlib
 from pathlib import Path
 
 import numpy as np
 
 from .cameras import MITSUBA_TO_OPENCV, rigid_pose
-from .checks import is_whole
 from .errors import UserError
 from .transforms import CAMERA_KEYS
 
@@ -45,43 +44,7 @@ def is_colmap_project(path) -> bool:
     return (Path(path) / SPARSE).is_dir()
 
 
-def colmap_source(path, *, n_heldout=None, **options):
-    """The :class:`~mitsuba_active.datasets.DatasetSource` of a COLMAP project folder.
-
-    ``n_heldout`` images (evenly spaced over the names; ``None``: every
-    8th) are held out; ``options`` are those of
-    :meth:`DatasetSource.from_parsed <mitsuba_active.datasets.DatasetSource.from_parsed>`.
-    """
-    from .datasets import DatasetSource
-
-    root = Path(path)
-    sparse = root / SPARSE
-    if n_heldout is not None and (not is_whole(n_heldout) or n_heldout < 0):
-        raise UserError(f"n_heldout must be a whole number >= 0 (or None: every {HOLDOUT_EVERY}th image), "
-                        f"got {n_heldout!r}")
-    files = []
-    for stem in MODEL_FILES:
-        found = [sparse / f"{stem}{ext}" for ext in (".bin", ".txt") if (sparse / f"{stem}{ext}").is_file()]
-        if not found:
-            raise UserError(f"{sparse} has no {stem}.bin or {stem}.txt: not a COLMAP sparse model")
-        files.append(found[0])
-    rec = _read_model(sparse)
-    frames, points = frames_from_reconstruction(rec, root / "images", str(sparse))
-    if not frames:
-        raise UserError(f"{sparse}: the model has no registered images")
-    held = set(_heldout_indices(len(frames), n_heldout))
-    train = [f for i, f in enumerate(frames) if i not in held]
-    test = [f for i, f in enumerate(frames) if i in held]
-    src = DatasetSource.from_parsed(train, test, points_bounds(points), root.resolve().name, root,
-                                    n_heldout=n_heldout, where=sparse, **options)
-    digest = hashlib.sha256()
-    for f in files:
-        digest.update(f.read_bytes())
-    src.content_hash = digest.hexdigest()
-    return src
-
-
-def _read_model(sparse: Path):
+def read_model(sparse: Path):
     """The pycolmap Reconstruction in ``sparse``; UserError when pycolmap is missing or cannot read it."""
     try:
         import pycolmap
@@ -138,7 +101,7 @@ def points_bounds(points: np.ndarray):
     return lo, hi
 
 
-def _heldout_indices(n: int, count) -> list[int]:
+def heldout_indices(n: int, count) -> list[int]:
     """Indices of ``count`` frames spread evenly over ``n`` (``None``: every :data:`HOLDOUT_EVERY`-th),
     leaving at least one for training."""
     if count is None:

@@ -12,6 +12,8 @@ import contextlib
 import sys
 import warnings
 
+import mitsuba as mi
+
 
 def one_line(message: str) -> str:
     """``message`` on one line: line breaks (in a file's name, or quoted from a
@@ -36,8 +38,6 @@ def mitsuba_log_as_warnings():
     complaint) as Python warnings, so one plain line each on stderr, once per
     message, instead of coloured lines among the command's output on stdout.
     Mitsuba's own appenders and format are put back afterwards."""
-    import mitsuba as mi
-
     class Appender(mi.Appender):
         def append(self, level, text):
             # Called from Mitsuba's C++ (also its worker threads): an exception raised here

@@ -30,13 +30,15 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import Camera
-from .colmap import colmap_source, is_colmap_project
 from .checks import is_number, is_whole
+from .colmap import (HOLDOUT_EVERY, MODEL_FILES, SPARSE, frames_from_reconstruction, heldout_indices,
+                     is_colmap_project, points_bounds, read_model)
 from .errors import UserError
-from .groundtruth import View
+from .groundtruth import View, default_cache_dir
 from .images import crop, image_size, read_depth, read_rgb
 from .imageio_utils import linear_to_srgb, srgb_to_linear
 from .lens import Lens, lens_from_keys, remap, valid_scale
+from .sources import SceneSource
 from .transforms import (TRANSFORMS_FILES, bounds_from_keys, locate_files, mitsuba_to_opengl,  # noqa: F401
                          opengl_to_mitsuba, parse_frame, read_transforms, split_frames)
 from .viewcache import cached
@@ -169,8 +171,6 @@ class DatasetSource:
         """A source of parsed frames ``(image, to_world (Mitsuba), camera keys, (depth map, scale, is
         distance), where)`` as :meth:`from_path` reads them (``bounds``: ``(min, max)`` or None:
         estimated); the options are :meth:`from_path`'s, ``where`` names the dataset in messages."""
-        from .groundtruth import default_cache_dir
-
         for key, count in (("n_candidates", n_candidates), ("n_heldout", n_heldout)):
             if count is not None and (not is_whole(count) or count < 0):
                 raise UserError(f"{key} must be a whole number >= 0 (or None: all frames), got {count!r}")
@@ -455,6 +455,40 @@ def estimate_bounds(cameras, margin: float = BOUNDS_MARGIN):
     return centre - radius, centre + radius
 
 
+def colmap_source(path, *, n_heldout=None, **options):
+    """The :class:`~mitsuba_active.datasets.DatasetSource` of a COLMAP project folder.
+
+    ``n_heldout`` images (evenly spaced over the names; ``None``: every
+    8th) are held out; ``options`` are those of
+    :meth:`DatasetSource.from_parsed <mitsuba_active.datasets.DatasetSource.from_parsed>`.
+    """
+    root = Path(path)
+    sparse = root / SPARSE
+    if n_heldout is not None and (not is_whole(n_heldout) or n_heldout < 0):
+        raise UserError(f"n_heldout must be a whole number >= 0 (or None: every {HOLDOUT_EVERY}th image), "
+                        f"got {n_heldout!r}")
+    files = []
+    for stem in MODEL_FILES:
+        found = [sparse / f"{stem}{ext}" for ext in (".bin", ".txt") if (sparse / f"{stem}{ext}").is_file()]
+        if not found:
+            raise UserError(f"{sparse} has no {stem}.bin or {stem}.txt: not a COLMAP sparse model")
+        files.append(found[0])
+    rec = read_model(sparse)
+    frames, points = frames_from_reconstruction(rec, root / "images", str(sparse))
+    if not frames:
+        raise UserError(f"{sparse}: the model has no registered images")
+    held = set(heldout_indices(len(frames), n_heldout))
+    train = [f for i, f in enumerate(frames) if i not in held]
+    test = [f for i, f in enumerate(frames) if i in held]
+    src = DatasetSource.from_parsed(train, test, points_bounds(points), root.resolve().name, root,
+                                    n_heldout=n_heldout, where=sparse, **options)
+    digest = hashlib.sha256()
+    for f in files:
+        digest.update(f.read_bytes())
+    src.content_hash = digest.hexdigest()
+    return src
+
+
 # ---------------------------------------------------------------------------
 # Scenes or datasets, from one path
 # ---------------------------------------------------------------------------
@@ -465,7 +499,7 @@ def open_source(path, *, rig="auto", n_candidates=100, n_heldout=20, resolution=
 
     Scenes give :meth:`SceneSource.from_xml(...) <mitsuba_active.env.SceneSource.from_xml>`;
     datasets (a transforms ``.json`` or a folder holding one; a COLMAP project
-    folder with ``sparse/0``: :func:`~mitsuba_active.colmap.colmap_source`)
+    folder with ``sparse/0``: :func:`colmap_source`)
     give :meth:`DatasetSource.from_path`, keeping at most
     ``n_candidates`` / ``n_heldout`` frames (evenly spaced) and shrinking
     images by ``downscale`` (``None``: ``max(1, round(width / resolution))``).
@@ -473,8 +507,6 @@ def open_source(path, *, rig="auto", n_candidates=100, n_heldout=20, resolution=
     ``fov`` None; ``spp`` only concerns scenes, and ``cache_dir`` also keeps
     large images' loaded views.
     """
-    from .env import SceneSource
-
     p = Path(path)
     if not p.exists():
         raise UserError(f"no such scene or dataset: {p}")

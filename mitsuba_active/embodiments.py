@@ -22,7 +22,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar
 
+import mitsuba as mi
 import numpy as np
+from scipy.sparse.csgraph import dijkstra
 
 from .cameras import fibonacci_directions
 from .checks import unknown_choice
@@ -132,8 +134,6 @@ class Drone(Embodiment):
     # -- ray casts --------------------------------------------------------------
     def _blocked(self, origins: np.ndarray, directions: np.ndarray, lengths: np.ndarray) -> np.ndarray:
         """(N,) bool: whether rays (origins, unit directions (N, 3)) meet a surface within ``lengths`` (N,)."""
-        import mitsuba as mi
-
         o, d = (np.asarray(a, dtype=np.float32) for a in (origins, directions))
         ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, j]) for j in range(3)]),
                        mi.Vector3f(*[mi.Float(d[:, j]) for j in range(3)]))
@@ -186,8 +186,6 @@ class Drone(Embodiment):
         return self._waypoints
 
     def _make_waypoints(self) -> np.ndarray:
-        import mitsuba as mi
-
         shapes = list(self.mi_scene.shapes())
         areas = np.array([float(np.asarray(s.surface_area()).ravel()[0]) for s in shapes])
         counts = np.maximum(1, np.round(SURFACE_SAMPLES * areas / max(areas.sum(), 1e-30))).astype(int)
@@ -209,7 +207,6 @@ class Drone(Embodiment):
         direct = self.clear(np.broadcast_to(start, targets.shape), targets)
         if direct.all():
             return [self._route([start, t]) for t in targets]
-        from scipy.sparse.csgraph import dijkstra
 
         w = self.waypoints()
         nw, nt = len(w), len(targets)

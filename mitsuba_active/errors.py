@@ -1,6 +1,7 @@
 """The exceptions that the command line and the package turn into one-line messages."""
 
 import os
+from pathlib import Path
 
 
 class UserError(Exception):
@@ -60,3 +61,17 @@ def brief(exc) -> str:
     says of a file it cannot load, quoted in a message of ours."""
     text = " ".join(str(exc).split())
     return text if len(text) <= 300 else text[:297] + "..."
+
+
+def os_error_line(exc: OSError) -> str:
+    """One line for a failed file operation; names the file that stands where a folder must be."""
+    if isinstance(exc, (FileExistsError, NotADirectoryError)) and exc.filename:
+        path = Path(exc.filename)
+        blocker = next((p for p in [path, *path.parents] if p.is_file()), None)
+        if blocker is not None:
+            return f"{blocker} is a file, where a folder is needed"
+    # A failed rename (every output is written to a hidden temporary name, then
+    # renamed) names the output it was to become, not the temporary file.
+    name = exc.filename2 or exc.filename
+    where = f"{name}: " if name else ""
+    return f"{where}{exc.strerror or exc}"

@@ -14,6 +14,7 @@ the run folder back, which the driver then puts in place whole.
 from __future__ import annotations
 
 import contextlib
+import multiprocessing as mp
 import os
 import signal
 import socket
@@ -24,8 +25,14 @@ import warnings
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
+import mitsuba as mi
+from tqdm import tqdm
+
+from .console import mitsuba_log_as_warnings, show_warning
 from .errors import UserError
 from .imageio_utils import replaced_folder
+from .planners.base import is_planner_file
+from .scene import referenced_files
 
 #: The executors, and what each one runs the suite's runs on.
 EXECUTORS = {"local": "worker processes on this machine (--workers)",
@@ -82,18 +89,18 @@ RAY_OPTION_NAMES = {f.name: "--" + f.name.replace("_", "-") for f in fields(RayO
 # Local worker processes
 # ---------------------------------------------------------------------------
 
-def run_local(jobs: list, workers: int, bar) -> None:
+def run_local(jobs: list, workers: int, bar, run_job) -> None:
     """Run the jobs here (one worker) or in up to ``workers`` fresh processes (Dr.Jit
-    must not be forked once initialised), which share the cores; Ctrl-C stops them all and is raised here."""
-    from .bench import run_job
+    must not be forked once initialised), which share the cores; Ctrl-C stops them all and is raised here.
 
+    ``run_job(job, threads)`` runs one job and returns its status (a module-level
+    function: the workers import it by name)."""
     if workers == 1:
         for job in jobs:
             bar.set_postfix_str(f"{job.scene}/{job.planner}/{job.seed}")
             run_job(job)
             bar.update()
         return
-    import multiprocessing as mp
 
     workers = max(1, min(workers, len(jobs)))  # a worker without a job would only start and stop
     threads = max(1, (os.cpu_count() or 1) // workers)
@@ -109,7 +116,7 @@ def run_local(jobs: list, workers: int, bar) -> None:
         finally:
             if main_thread:  # None: a handler not set from Python, which cannot be put back
                 signal.signal(signal.SIGINT, signal.default_int_handler if handler is None else handler)
-        for status in pool.imap_unordered(_run_job_star, [(j, threads) for j in jobs]):
+        for status in pool.imap_unordered(_run_job_star, [(run_job, j, threads) for j in jobs]):
             bar.set_postfix_str(status["job"])
             bar.update()
         pool.close()
@@ -125,8 +132,6 @@ def _stop_pool(pool, patience: float = 10.0) -> None:
     for them; should that not end within ``patience`` seconds (a worker or
     the pool's own bookkeeping stuck), end them outright, so that an
     interrupted suite always stops."""
-    import multiprocessing as mp
-
     stopper = threading.Thread(target=pool.terminate, daemon=True)
     stopper.start()
     stopper.join(patience)
@@ -143,8 +148,6 @@ def _init_worker(parent: int):
     is gone (killed outright) stops itself the same way. tqdm's lock is a
     thread lock here: its default, a multiprocessing lock, would be reported
     as leaked when a worker stops."""
-    from tqdm import tqdm
-
     def stop(signum, frame):
         signal.signal(signal.SIGTERM, signal.SIG_IGN)  # one stop; its clean-up is not cut short
         if not _worker_busy:
@@ -168,8 +171,6 @@ def _init_worker(parent: int):
 
 def _show_warnings_as_lines() -> None:
     """Warnings, Mitsuba's too, as the command line shows them: plain lines on stderr."""
-    from .console import mitsuba_log_as_warnings, show_warning
-
     warnings.showwarning = show_warning
     if not _WORKER_LOGGING._exit_callbacks:  # once per process
         _WORKER_LOGGING.enter_context(mitsuba_log_as_warnings())
@@ -184,12 +185,11 @@ _worker_busy = False
 
 
 def _run_job_star(args):
-    from .bench import run_job
-
+    run_job, *rest = args
     global _worker_busy
     _worker_busy = True
     try:
-        return run_job(*args)
+        return run_job(*rest)
     finally:
         _worker_busy = False
 
@@ -248,12 +248,11 @@ def ray_session(options: RayOptions):
         ray.shutdown()
 
 
-def run_ray(jobs: list, options: RayOptions, bar) -> None:
+def run_ray(jobs: list, options: RayOptions, bar, run_job) -> None:
     """Run the jobs as Ray tasks and write what the workers send back; the first
     run that fails (or whose worker dies more than ``options.retries`` times)
-    cancels the others and is raised here, as is Ctrl-C."""
-    import mitsuba as mi
-
+    cancels the others and is raised here, as is Ctrl-C. ``run_job``: as
+    :func:`run_local` takes it."""
     gpus = options.gpus_per_run
     if gpus is None:
         gpus = GPU_SHARE if (mi.variant() or "").startswith("cuda") else 0.0
@@ -271,7 +270,7 @@ def run_ray(jobs: list, options: RayOptions, bar) -> None:
                               config={**job.config, "scene": os.path.abspath(job.config["scene"])})
                 # The scene's files by reference: Ray hands a task the objects of its own arguments.
                 scene, planner, run = _inputs(job, bundles, ray)
-                pending[task.remote(job, threads, options.storage, _folder_id(Path(job.out).parents[2]),
+                pending[task.remote(run_job, job, threads, options.storage, _folder_id(Path(job.out).parents[2]),
                                     scene, planner, run)] = job
             while pending:
                 done, _ = ray.wait(list(pending), num_returns=1)
@@ -329,9 +328,6 @@ def _inputs(job, bundles: dict, ray) -> tuple:
     """What a worker without the suite folder needs to run ``job``: the scene's
     files (its XML and the files it names, below their common folder), a
     planner file of the user's own, and the files the run folder holds."""
-    from .planners.base import is_planner_file
-    from .scene import referenced_files
-
     xml = Path(job.scene_xml)
     if job.scene_xml not in bundles:
         files = [xml.resolve(), *(p.resolve() for p in referenced_files(xml))]
@@ -347,11 +343,10 @@ def _inputs(job, bundles: dict, ray) -> tuple:
     return bundles[job.scene_xml], planner, run
 
 
-def _ray_task(job, threads: int, storage: str, folder_id, scene: dict, planner: dict | None, run: dict) -> dict:
-    """One run, in a Ray worker: in the suite folder when this worker sees it,
-    else in a scratch folder whose run folder goes back to the driver."""
-    from .bench import run_job
-
+def _ray_task(run_job, job, threads: int, storage: str, folder_id, scene: dict, planner: dict | None,
+              run: dict) -> dict:
+    """One run (``run_job``, as :func:`run_local` takes it), in a Ray worker: in the suite
+    folder when this worker sees it, else in a scratch folder whose run folder goes back to the driver."""
     _show_warnings_as_lines()
     if storage == "auto" and _sees(folder_id):
         return run_job(job, threads)

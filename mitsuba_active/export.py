@@ -26,14 +26,15 @@ import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
 
 from .cameras import Camera
 from .datasets import mitsuba_to_opengl
 from .errors import FolderError, UserError, first_line
-from .imageio_utils import atomic_write, new_entries, remove_new, srgb_to_linear, write_exr, write_png
+from .imageio_utils import atomic_write, new_entries, read_exr, remove_new, srgb_to_linear, write_exr, write_png
 from .interrupts import interrupts_deferred
-from .run import read_record
+from .run import RunConfig, read_record
 
 #: The names of the files an export writes beside its JSON files.
 _WRITTEN = re.compile(r"(images|masks)/(view|heldout)_\d{3,}\.png|distance/(view|heldout)_\d{3,}\.exr")
@@ -200,8 +201,6 @@ class _RunSource:
     frames and masks, or the held-out ground truth of a run that has not written it."""
 
     def __init__(self, run_dir: Path, rec: dict):
-        from .run import RunConfig
-
         try:
             cfg = RunConfig(**rec["config"])
         except TypeError as exc:
@@ -248,8 +247,6 @@ class _RunSource:
 
 def _read_distance(path: Path) -> np.ndarray:
     """(H, W) float32 channel ``Z`` of an EXR the run wrote."""
-    from .imageio_utils import read_exr
-
     return read_exr(path)["Z"]
 
 
@@ -274,8 +271,6 @@ def _transforms(rec: dict, ref: Camera, distances: bool, masks: bool, frames: li
 def _check_views(folder: Path, views: list[tuple[str, Camera]], distances: bool) -> None:
     """UserError unless every view's image (and distance map), ``folder/NAME.png`` (``.exr``),
     reads as an image of its camera's size: a damaged file is refused, not copied."""
-    import imageio.v3 as iio
-
     for name, cam in views:
         files = [(folder / f"{name}.png", lambda p: iio.imread(p, plugin="pillow").shape[:2])]
         if distances:

@@ -19,6 +19,8 @@ import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 from .cameras import Camera, sensor_rays_dr
@@ -95,9 +97,6 @@ class View:
 
 def render_distance(mi_scene, camera: Camera) -> np.ndarray:
     """(H, W) float32 distance from the optical centre along pixel-centre rays, 0 where nothing is hit."""
-    import drjit as dr
-    import mitsuba as mi
-
     o, d = sensor_rays_dr(camera.sensor(), camera.width, camera.height)
     si = mi_scene.ray_intersect(mi.Ray3f(o, d))
     t = dr.select(si.is_valid(), si.t, 0.0)
@@ -115,8 +114,6 @@ MAX_SPP = 65536
 def render_rgb(mi_scene, camera: Camera, spp: int, seed: int = 0) -> np.ndarray:
     """(H, W, 3) float32 linear radiance from the scene's integrator (a path
     tracer when the scene names none, as Mitsuba XMLs may)."""
-    import mitsuba as mi
-
     integrator = mi_scene.integrator() or _path_integrator(mi.variant())
     per_pass = max(1, MAX_PASS_SAMPLES // (camera.width * camera.height))
     # One pass (most renders) gives Mitsuba's image exactly: k * x / k is x in float64.
@@ -131,8 +128,6 @@ def render_rgb(mi_scene, camera: Camera, spp: int, seed: int = 0) -> np.ndarray:
 @functools.lru_cache(maxsize=None)
 def _path_integrator(variant: str):
     """A default path tracer, made once per variant (the cache key) rather than once per render."""
-    import mitsuba as mi
-
     return mi.load_dict({"type": "path"})
 
 

@@ -24,9 +24,12 @@ import sys
 import tempfile
 from pathlib import Path
 
+import imageio.v3 as iio
+import matplotlib
 import numpy as np
+import OpenEXR
 
-from .errors import first_line
+from .errors import FolderInUse, first_line
 from .interrupts import interrupts_deferred
 
 #: The C library, whose stdio buffers C and C++ code print through (None where it cannot be loaded so).
@@ -87,8 +90,6 @@ def folder_lock(path: Path):
     is the kernel's (``flock`` on the folder itself): no lock file is left
     behind, and a killed holder releases it. Where there is no ``flock``
     (Windows), nothing is locked."""
-    from .errors import FolderInUse
-
     try:
         import fcntl
     except ImportError:  # pragma: no cover
@@ -136,8 +137,6 @@ def write_exr(path, channels: dict[str, np.ndarray]) -> None:
 
     OSError when the file cannot be written (OpenEXR raises RuntimeError for a full disk).
     """
-    import OpenEXR
-
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
     with atomic_write(path) as tmp, OpenEXR.File(header, data) as f:
@@ -170,8 +169,6 @@ def _read_quietly(path, header_only: bool, read):
     on stdout from its Python bindings) as well as, or instead of, raising:
     either makes the read a failure, whose reason is the first line printed.
     """
-    import OpenEXR
-
     failure = None
     with _output_captured() as said:
         try:
@@ -236,16 +233,12 @@ def to_uint8(img: np.ndarray) -> np.ndarray:
 
 def write_png(path, img: np.ndarray) -> None:
     """Write an image in [0, 1] ((H,W), (H,W,3) or (H,W,4)) as 8-bit PNG."""
-    import imageio.v3 as iio
-
     with atomic_write(path) as tmp:
         iio.imwrite(tmp, to_uint8(img), extension=".png")
 
 
 def colorize(values: np.ndarray, mask: np.ndarray | None = None, vmin=None, vmax=None, cmap="turbo") -> np.ndarray:
     """Map a scalar image (H,W) to RGB (H,W,3) in [0,1]; pixels outside ``mask`` are black."""
-    import matplotlib
-
     v = np.asarray(values, dtype=np.float64)
     m = np.isfinite(v) if mask is None else (mask & np.isfinite(v))
     if not m.any():

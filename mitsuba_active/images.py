@@ -10,7 +10,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
+import imageio.v3 as iio
 import numpy as np
+from PIL import Image
 
 from .errors import UserError
 from .imageio_utils import exr_size, linear_to_srgb, read_exr
@@ -79,15 +82,11 @@ def read_rgb(path: Path, white_background: bool, size=None) -> tuple[np.ndarray,
 
 def _read_pixels(path: Path) -> tuple[np.ndarray, int]:
     """The stored pixels (H, W[, C]) uint8 or uint16, RGB(A) order, and the EXIF orientation (1: upright)."""
-    import imageio.v3 as iio
-    from PIL import Image
-
     try:
         with Image.open(path) as im:
             cmyk = im.mode == "CMYK"  # 4 channels that are no alpha: as RGB
             orientation = int(im.getexif().get(EXIF_ORIENTATION, 1) or 1)
         if _png_bit_depth(path) == 16:  # Pillow reads 16-bit colour PNGs as 8-bit
-            import cv2
 
             raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if raw is None:
@@ -119,7 +118,6 @@ def image_size(path: Path, upright: bool = True) -> tuple[int, int]:
             return exr_size(path)
         except ValueError as exc:
             raise UserError(f"cannot read image {path}: {exc}") from None
-    from PIL import Image
 
     try:
         with Image.open(path) as im:
@@ -145,7 +143,6 @@ def read_depth(path: Path, entry: str) -> np.ndarray:
         if d.ndim != 2 or not np.issubdtype(d.dtype, np.number):
             raise UserError(f"depth map {path} must be a 2-D array of numbers, got {d.dtype} {d.shape}")
         return d.astype(np.float32)
-    import imageio.v3 as iio
 
     try:
         d = iio.imread(path)

@@ -24,6 +24,7 @@ import math
 from dataclasses import dataclass
 from functools import lru_cache
 
+import cv2
 import numpy as np
 
 from .errors import UserError
@@ -153,8 +154,6 @@ def valid_scale(lens: Lens) -> float:
 def remap(lens: Lens, img: np.ndarray, nearest: bool = False) -> np.ndarray:
     """The undistorted image of (H, W) or (H, W, C) float32 ``img`` (bilinear, or ``nearest``); pixels that
     see nothing captured repeat the edge (:func:`valid_scale` keeps them out of the views)."""
-    import cv2
-
     map_x, map_y, _ = undistort_maps(lens)
     flags = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
     out = cv2.remap(np.ascontiguousarray(img, dtype=np.float32), map_x, map_y, flags,
@@ -166,8 +165,6 @@ def capture_through(img: np.ndarray, f: float, model: str, coeffs: dict) -> np.n
     """(H, W, C) float ``img`` of a pinhole camera (focal ``f`` pixels, principal point at the
     centre) as a lens with ``coeffs`` (OpenCV's own model and functions, ``model`` ``OPENCV`` or
     ``OPENCV_FISHEYE``) would have captured it: to make distorted captures with a known lens."""
-    import cv2
-
     if not coeffs:
         return img
     h, w = img.shape[:2]

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
 
+from .cameras import up_frame
 from .imageio_utils import atomic_write
 
 
 def _plt():
-    import matplotlib
+    """matplotlib's pyplot, loaded on the first plot with the file-only backend chosen before it."""
+    import matplotlib  # here, not above: a caller's own backend stays until a plot is drawn
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -88,8 +91,6 @@ def contact_sheet(images: list, labels: list[str], path, columns: int = 5) -> Pa
     Args:
         images: image files, or (H, W, 3) arrays of display values in [0, 1].
     """
-    import imageio.v3 as iio
-
     plt = _plt()
     n = len(images)
     cols = min(columns, max(n, 1))
@@ -107,8 +108,6 @@ def contact_sheet(images: list, labels: list[str], path, columns: int = 5) -> Pa
 def up_vertical(points, up=(0.0, 1.0, 0.0)) -> np.ndarray:
     """World points (N, 3) in a frame whose third axis is ``up``: matplotlib's
     3D axes draw their third axis vertically."""
-    from .cameras import up_frame
-
     q = np.asarray(points, dtype=np.float64).reshape(-1, 3) @ up_frame(up)  # columns: side, up, side
     return q[:, [0, 2, 1]] * np.array([1.0, -1.0, 1.0])  # keep the frame right-handed
 

@@ -13,7 +13,6 @@ import numpy as np
 
 from .cameras import camera_rays
 from .checks import is_whole
-from .errors import UserError
 from .groundtruth import View
 from .metrics import distance_error, foreground_psnr, psnr, ssim
 
@@ -59,7 +58,7 @@ def view_rays(views: list[View]) -> dict:
 def sparse_candidate_rays(candidates, n_rays: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """A fixed random subset of R pixel rays per candidate: origins and directions, (C, R, 3) each."""
     if not is_whole(n_rays) or not 0 < n_rays <= MAX_CANDIDATE_RAYS:
-        raise UserError(f"rays per candidate must be a whole number in [1, {MAX_CANDIDATE_RAYS}], got {n_rays!r}")
+        raise ValueError(f"rays per candidate must be a whole number in [1, {MAX_CANDIDATE_RAYS}], got {n_rays!r}")
     rng = np.random.default_rng(seed)
     o_all, d_all = [], []
     for cam in candidates:
@@ -73,11 +72,11 @@ def sparse_candidate_rays(candidates, n_rays: int, seed: int) -> tuple[np.ndarra
 def train_on(ens, views: list[View], steps: int, progress: bool = False, reset_occupancy: bool = True) -> np.ndarray:
     """Set the rays of ``views`` on ``ens`` and train it ``steps`` steps; returns the (steps,) losses.
 
-    Without views there is nothing to set: 0 steps do nothing, more are a UserError."""
+    Without views there is nothing to set: 0 steps do nothing, more are a ValueError."""
     if not views:
         if is_whole(steps) and steps == 0:
             return np.zeros(0)
-        raise UserError(f"train_on: no views to train on ({steps!r} steps asked for)")
+        raise ValueError(f"train_on: no views to train on ({steps!r} steps asked for)")
     r = view_rays(views)
     ens.set_rays(r["origins"], r["directions"], r["rgb"], r["distance"], r["hit"], reset_occupancy, r["empty"],
                  r["background"])

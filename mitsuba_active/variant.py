@@ -123,10 +123,10 @@ def set_variant(name: str | None = None) -> str:
     name = name or "llvm_ad_rgb"
     if name != "cuda_ad_rgb" and current != name:
         ensure_llvm()
-    import mitsuba as mi
+    import mitsuba as mi  # here, not above: Dr.Jit loads only once ensure_llvm() has found LLVM
 
     if name == "cuda_ad_rgb":
-        import drjit as dr
+        import drjit as dr  # loaded by Mitsuba's import just above
 
         if not dr.has_backend(dr.JitBackend.CUDA):
             raise UserError("the cuda_ad_rgb variant needs an NVIDIA GPU with its driver, and none was found; "
@@ -167,7 +167,7 @@ def require_variant(what: str) -> None:
     may have switched it after importing the package): in another, renders
     would be of another kind (spectral) under the same cache keys, or fail
     deep inside Mitsuba (scalar)."""
-    import mitsuba as mi
+    import mitsuba as mi  # here, not above: importing this module must not load Dr.Jit (see ensure_llvm)
 
     if mi.variant() not in VARIANTS:
         raise UserError(f"{what} needs Mitsuba variant {' or '.join(VARIANTS)}, but '{mi.variant()}' is set; "

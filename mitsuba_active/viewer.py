@@ -9,12 +9,16 @@ import threading
 import time
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
+from matplotlib import colormaps
 
 from .cameras import Camera
 from .errors import UserError
+from .field import Ensemble
 from .imageio_utils import colorize
 from .run import read_record
+from .training import predict_view
 from .webpage import camera_scene
 
 VIEWER_EXTRA = "pip install 'mitsuba-active[viewer]'"
@@ -57,7 +61,7 @@ def path_segments(data: dict, shown: int) -> np.ndarray:
 def opencv_wxyz(cam: dict) -> np.ndarray:
     """The quaternion (w, x, y, z) of a page camera (:func:`~.webpage.camera_scene`) in viser's
     OpenCV convention: +Z forward, +X right, +Y down."""
-    from viser.transforms import SO3
+    from viser.transforms import SO3  # viser is an optional extra (see _viser)
 
     rot = np.stack([-np.asarray(cam["left"]), -np.asarray(cam["up"]), np.asarray(cam["fwd"])], axis=1)
     u, _, vt = np.linalg.svd(rot)  # the nearest rotation to the rounded axes
@@ -70,8 +74,6 @@ def _vertical_fov(cam: dict) -> float:
 
 
 def viridis(t: float) -> tuple[int, int, int]:
-    from matplotlib import colormaps
-
     return tuple(int(round(255 * c)) for c in colormaps["viridis"](float(np.clip(t, 0.0, 1.0)))[:3])
 
 
@@ -180,15 +182,11 @@ class RunViewer:
                                                              thickness=2.0, thickness_units="screen")
 
     def _view_image(self, n: int):
-        import imageio.v3 as iio
-
         path = self.run_dir / "views" / f"view_{n:03d}.png"
         return iio.imread(path)[..., :3] if path.is_file() else None
 
     # -- rendering ------------------------------------------------------------
     def _field(self):
-        from .field import Ensemble
-
         name = self.rec.get("ensemble_file")
         if not name or not (self.run_dir / name).is_file():
             return None
@@ -198,8 +196,6 @@ class RunViewer:
 
     def render(self, camera: Camera) -> dict | None:
         """The planner's ensemble's mean and variance images from ``camera`` (None: the run keeps no ensemble)."""
-        from .training import predict_view
-
         field = self._field()
         if field is None:
             return None

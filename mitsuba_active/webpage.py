@@ -15,10 +15,12 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from .cameras import Camera, snapped_up
 from .imageio_utils import atomic_write
 from .metrics import DECIMALS, fixed
+from .planners.base import planner_label
 from .report import METRIC_LABELS, up_vertical
 
 #: Name of a run's page in its folder, and of a suite's in its report folder.
@@ -40,8 +42,6 @@ def _asset(name: str) -> str:
 
 def data_uri(path, photo: bool = True) -> str | None:
     """The image file ``path`` as a data URI (JPEG for ``photo``, else PNG as it is); None when it is missing."""
-    from PIL import Image
-
     path = Path(path)
     if not path.is_file():
         return None
@@ -128,8 +128,6 @@ def _plots(folder: Path) -> str:
 
 def run_page(run_dir, rec: dict) -> str:
     """The HTML of a run's report, from its folder and its record (run.json's content)."""
-    from .planners.base import planner_label
-
     run_dir = Path(run_dir)
     cfg = rec.get("config", {})
     planner = planner_label(cfg.get("planner", "?"))

@@ -281,10 +281,10 @@ def test_tiny_suite_end_to_end_and_resume(tiny_suite, tmp_path, monkeypatch):
                for c in summary["cells"])
     # With rfe's run of one scene missing, the summary averages the other scene alone, as
     # table_mean.md does, and each planner keeps its colour.
-    import mitsuba_active.report as report_module
+    import mitsuba_active.bench.tables as tables_module
 
     plots = []
-    monkeypatch.setattr(report_module, "plot_metrics", lambda series, out, title="", bands=None, colors=None:
+    monkeypatch.setattr(tables_module, "plot_metrics", lambda series, out, title="", bands=None, colors=None:
                         plots.append((title, {p: [r["views"] for r in rows] for p, rows in series.items()}, colors)))
     hidden = out / "runs" / "simple" / "rfe-seed0"
     hidden.rename(tmp_path / "hidden")
@@ -922,7 +922,7 @@ def test_a_variants_options_are_checked_before_anything_runs(tiny_suite, tmp_pat
 
 
 def test_bench_field_sets_every_runs_preset(tiny_suite, tmp_path, monkeypatch):
-    import mitsuba_active.bench as bench_module
+    import mitsuba_active.cli as cli_module
 
     seen = {}
 
@@ -931,7 +931,7 @@ def test_bench_field_sets_every_runs_preset(tiny_suite, tmp_path, monkeypatch):
         return {"unreported_seeds": [], "cells": [], "runs_reported": 0, "runs": 0, "short_training": 0,
                 "versions": []}
 
-    monkeypatch.setattr(bench_module, "run_suite", fake_run_suite)
+    monkeypatch.setattr(cli_module, "run_suite", fake_run_suite)
     monkeypatch.chdir(tmp_path)
     res = CliRunner().invoke(main, ["bench", str(tiny_suite), "--field", "fast"])
     assert res.exit_code == 0, res.output

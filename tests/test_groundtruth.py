@@ -211,7 +211,7 @@ def test_render_command_replaces_an_earlier_render_whole(spot_xml, tmp_path, mon
     files); an interrupted render leaves the earlier one as it was."""
     from click.testing import CliRunner
 
-    import mitsuba_active.imageio_utils as imageio_utils
+    import mitsuba_active.renders as renders
     from mitsuba_active.cli import main
 
     out = tmp_path / "views"
@@ -232,7 +232,7 @@ def test_render_command_replaces_an_earlier_render_whole(spot_xml, tmp_path, mon
     before = {p.name: p.read_bytes() for p in out.iterdir()}
 
     written = []
-    write_png = imageio_utils.write_png
+    write_png = renders.write_png
 
     def interrupted_at_the_second_view(path, img):
         written.append(path)
@@ -240,7 +240,7 @@ def test_render_command_replaces_an_earlier_render_whole(spot_xml, tmp_path, mon
             raise KeyboardInterrupt
         write_png(path, img)
 
-    monkeypatch.setattr(imageio_utils, "write_png", interrupted_at_the_second_view)
+    monkeypatch.setattr(renders, "write_png", interrupted_at_the_second_view)
     code, text = render()
     assert code == 130 and "\nmitsuba-active: interrupted\n" in text, text  # on a line of its own
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before

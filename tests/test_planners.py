@@ -115,14 +115,14 @@ def test_a_batch_larger_than_the_views_left_names_both_counts(name):
 def test_scoring_planners_say_what_the_state_lacks(name):
     from types import SimpleNamespace
 
-    with pytest.raises(UserError, match=f"the {name} planner .* has no ensemble and no candidate_rays"):
+    with pytest.raises(ValueError, match=f"the {name} planner .* has no ensemble and no candidate_rays"):
         make_planner(name).select(PlanningState(CANDS, [0]), 1)
     rays = np.zeros((len(CANDS), 4, 3), np.float32)
     for bad, got in (((list(rays), rays), "'list'"), ((rays.reshape(-1, 3), rays.reshape(-1, 3)), "\\(48, 3\\)"),
                      ((rays[:3], rays[:3]), "\\(3, 4, 3\\)"), (rays, "ndarray")):
         state = PlanningState(CANDS, [0], ensemble=SimpleNamespace(n_members=2), candidate_rays=bad)
-        with pytest.raises(UserError, match=f"needs candidate_rays = \\(origins, directions\\), two numpy arrays "
-                                            f"of shape \\(C, R, 3\\) for the C = 12 candidates, got .*({got})"):
+        with pytest.raises(ValueError, match=f"needs candidate_rays = \\(origins, directions\\), two numpy arrays "
+                                             f"of shape \\(C, R, 3\\) for the C = 12 candidates, got .*({got})"):
             make_planner(name).select(state, 1)
 
 
@@ -150,7 +150,7 @@ def test_variational_refuses_a_plain_ensemble():
 
     ens = Ensemble([-1] * 3, [1] * 3, n_members=1, config=FieldConfig(n_levels=1, log2_table_size=10), seed=0)
     state = PlanningState(CANDS, [0], ens, sparse_candidate_rays(CANDS, 4, 0))
-    with pytest.raises(UserError, match="the variational planner scores with a VariationalField .*, got Ensemble"):
+    with pytest.raises(TypeError, match="the variational planner scores with a VariationalField .*, got Ensemble"):
         make_planner("variational").select(state, 1)
 
 
@@ -158,7 +158,7 @@ def test_greedy_top_and_planner_names_say_what_is_wrong():
     from mitsuba_active.planners import greedy_top
     from mitsuba_active.planners.rfe import RFEPlanner
 
-    with pytest.raises(UserError, match=r"scores and allowed must both be \(C,\) arrays.*\(2,\) and \(3,\)"):
+    with pytest.raises(ValueError, match=r"scores and allowed must both be \(C,\) arrays.*\(2,\) and \(3,\)"):
         greedy_top([0.1, 0.5], np.array([1, 1, 1]), 1)
     with pytest.raises(UserError, match="got <class .*RFEPlanner'>; register RFEPlanner with @register"):
         make_planner(RFEPlanner)

@@ -47,7 +47,7 @@ def test_train_on_without_views(source):
 
     ens = make_ensemble(source, RunConfig(scene=str(source.scene.path), field=TINY["field"]), 1, seed=0)
     assert train_on(ens, [], 0).shape == (0,)
-    with pytest.raises(UserError, match=r"train_on: no views to train on \(5 steps asked for\)"):
+    with pytest.raises(ValueError, match=r"train_on: no views to train on \(5 steps asked for\)"):
         train_on(ens, [], 5)
     with pytest.raises(UserError, match="steps must be a whole number"):
         train_on(ens, [source.candidate_view(0)], -1)
@@ -691,15 +691,15 @@ def test_a_run_folder_refuses_a_source_with_other_cameras(source, tmp_path):
 
 def test_the_evaluation_field_trains_on_views_in_candidate_order(source, tmp_path, monkeypatch):
     """The same views captured in another order give the same evaluation (not only to rounding)."""
-    import mitsuba_active.run as run_module
+    import mitsuba_active.run.runner as runner_module
 
-    trained_on, evaluate = [], run_module.evaluate
+    trained_on, evaluate = [], runner_module.evaluate
 
     def recording(src, views, cfg, progress=False):
         trained_on.append([next(i for i, c in enumerate(src.candidates) if c is v.camera) for v in views])
         return evaluate(src, views, cfg, progress)
 
-    monkeypatch.setattr(run_module, "evaluate", recording)
+    monkeypatch.setattr(runner_module, "evaluate", recording)
     rec = _run(source, tmp_path / "run", planner="even", seed=1)
     assert rec["captured"] != sorted(rec["captured"])  # captured out of candidate order
     assert trained_on == [sorted(rec["captured"][:2]), sorted(rec["captured"])]

@@ -4,7 +4,6 @@ import numpy as np
 import mitsuba as mi
 import pytest
 
-from mitsuba_active.errors import UserError
 from mitsuba_active.scene import DEFAULT_COLOR, load_scene, normalise_vertices, scene_from_mesh
 
 
@@ -182,7 +181,7 @@ def test_up_axis_rotates_z_up_meshes_to_y_up():
     y_up = normalise_vertices(v, "z")
     assert np.ptp(y_up[:, 1]) == pytest.approx(1.0)
     assert np.ptp(normalise_vertices(v, "y")[:, 2]) == pytest.approx(1.0)
-    with pytest.raises(UserError):
+    with pytest.raises(ValueError, match="up must be 'y' or 'z', got 'x'"):
         normalise_vertices(v, "x")
 
 

@@ -22,6 +22,7 @@ import numpy as np
 
 from ..checks import choice_named, is_whole, not_a_file, unknown_choice
 from ..errors import UserError
+from ..field import Ensemble
 from ..imageio_utils import folder_name
 
 
@@ -88,8 +89,6 @@ class Planner:
         """The field a run trains for this planner (with ``needs_ensemble``):
         an :class:`~mitsuba_active.field.Ensemble` of ``n_members``. A run
         resumes with the saved field, read by that field's class's ``load``."""
-        from ..field import Ensemble
-
         return Ensemble(bbox_min, bbox_max, n_members=n_members, config=config, seed=seed)
 
     def ensemble_size(self, requested: int) -> int:
@@ -103,20 +102,21 @@ class Planner:
                             f"(--ensemble {self.min_members} or more)")
 
     def check_state(self, state: PlanningState) -> None:
-        """UserError unless ``state`` holds what this planner scores with: for
-        planners with an ensemble, the ensemble and the candidates' rays."""
+        """ValueError unless ``state`` holds what this planner scores with: for
+        planners with an ensemble, the ensemble and the candidates' rays (the
+        caller makes the state); UserError for an ensemble too small for it."""
         if not self.needs_ensemble:
             return
         missing = [name for name in ("ensemble", "candidate_rays") if getattr(state, name) is None]
         if missing:
-            raise UserError(f"the {self.name} planner scores candidates with an ensemble over their rays; "
-                            f"the PlanningState has no {' and no '.join(missing)}")
+            raise ValueError(f"the {self.name} planner scores candidates with an ensemble over their rays; "
+                             f"the PlanningState has no {' and no '.join(missing)}")
         rays, c = state.candidate_rays, len(state.candidates)
         if not _are_candidate_rays(rays, c):
             got = ([getattr(a, "shape", type(a).__name__) for a in rays] if isinstance(rays, (tuple, list))
                    else type(rays).__name__)
-            raise UserError(f"the {self.name} planner needs candidate_rays = (origins, directions), two numpy "
-                            f"arrays of shape (C, R, 3) for the C = {c} candidates, got {got}")
+            raise ValueError(f"the {self.name} planner needs candidate_rays = (origins, directions), two numpy "
+                             f"arrays of shape (C, R, 3) for the C = {c} candidates, got {got}")
         self.check_ensemble_size(state.ensemble.n_members)
 
     def select(self, state: PlanningState, batch: int) -> tuple[list[int], np.ndarray | None]:
@@ -175,8 +175,8 @@ def greedy_top(scores: np.ndarray, allowed: np.ndarray, batch: int) -> list[int]
     """
     scores, allowed = np.asarray(scores, dtype=np.float64), np.asarray(allowed, dtype=bool)
     if scores.ndim != 1 or scores.shape != allowed.shape:
-        raise UserError(f"greedy_top: scores and allowed must both be (C,) arrays, one entry per candidate; "
-                        f"got shapes {scores.shape} and {allowed.shape}")
+        raise ValueError(f"greedy_top: scores and allowed must both be (C,) arrays, one entry per candidate; "
+                         f"got shapes {scores.shape} and {allowed.shape}")
     check_batch(allowed, batch)
     ok = np.flatnonzero(allowed & ~np.isnan(scores))
     if len(ok) < batch:

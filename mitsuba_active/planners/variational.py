@@ -10,7 +10,8 @@ same grid as the other planners.
 
 from __future__ import annotations
 
-from ..errors import UserError
+from ..field import VariationalField
+from ..field.variational import DEFAULT_DRAWS, DEFAULT_ENTROPY_WEIGHT, DEFAULT_MAX_STD, check_options
 from .base import register
 from .rfe import RFEPlanner
 
@@ -25,8 +26,6 @@ class VariationalPlanner(RFEPlanner):
 
     def __init__(self, form: str = "sum", draws: int | None = None, max_std: float | None = None,
                  entropy_weight: float | None = None):
-        from ..field.variational import DEFAULT_DRAWS, DEFAULT_ENTROPY_WEIGHT, DEFAULT_MAX_STD, check_options
-
         super().__init__(form)
         self.draws = DEFAULT_DRAWS if draws is None else draws
         self.max_std = DEFAULT_MAX_STD if max_std is None else max_std
@@ -40,15 +39,12 @@ class VariationalPlanner(RFEPlanner):
 
     def check_state(self, state):
         super().check_state(state)
-        from ..field import VariationalField
 
         # A plain ensemble of one member has no spread to score: every candidate would score 0.
         if not isinstance(state.ensemble, VariationalField):
-            raise UserError(f"the {self.name} planner scores with a VariationalField (its make_field), "
+            raise TypeError(f"the {self.name} planner scores with a VariationalField (its make_field), "
                             f"got {type(state.ensemble).__name__}")
 
     def make_field(self, bbox_min, bbox_max, n_members, config, seed):
-        from ..field import VariationalField
-
         return VariationalField(bbox_min, bbox_max, config=config, seed=seed, max_std=self.max_std,
                                 entropy_weight=self.entropy_weight, draws=self.draws)

@@ -15,6 +15,7 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
 
 from ..cameras import Camera, snapped_up
@@ -109,8 +110,6 @@ def referenced_files(xml_path: Path, seen=None, resolver=None, base: Path | None
     are replaced by ``params`` (the values the scene is loaded with) or,
     failing those, the XML's ``<default>`` values. UserError if malformed.
     """
-    import mitsuba as mi
-
     seen = set() if seen is None else seen
     params = {k: str(v) for k, v in (params or {}).items()}
     base = base or xml_path.parent
@@ -179,8 +178,6 @@ def content_hash(xml_path: Path, refs: list[Path] | None = None, **params) -> st
 
 def load_mitsuba(xml_path: Path, **params):
     """The ``mitsuba.Scene`` of an XML file; UserError, in one line, when Mitsuba cannot load it."""
-    import mitsuba as mi
-
     try:
         return mi.load_file(str(xml_path), **params)
     except Exception as exc:
@@ -226,8 +223,6 @@ def scene_from_mitsuba(scene, name: str = "scene") -> Scene:
     does not take it. ``name`` stands for the file in messages and is the
     view source's name.
     """
-    import mitsuba as mi
-
     require_variant("loading a scene")
     given = type(scene).__name__
     if isinstance(scene, dict):
@@ -247,8 +242,6 @@ def scene_from_mitsuba(scene, name: str = "scene") -> Scene:
 def _describe(mi_scene, xml_path: Path, digest: str | None) -> Scene:
     """The :class:`Scene` of a loaded Mitsuba scene (``xml_path`` names it in
     messages); UserError when it has no shapes or unusable bounds."""
-    import mitsuba as mi
-
     if len(mi_scene.shapes()) == 0:
         raise UserError(f"scene {xml_path} has no shapes")
     if len(mi_scene.emitters()) == 0:

@@ -12,6 +12,7 @@ import re
 import warnings
 from pathlib import Path
 
+import mitsuba as mi
 import numpy as np
 
 from ..checks import not_a_file
@@ -28,6 +29,7 @@ DEFAULT_COLOR = (0.45, 0.3, 0.2)
 
 def load_mesh(path) -> "trimesh.Trimesh":
     """Load one triangle mesh with trimesh; UserError when missing, unreadable, empty or degenerate."""
+    # trimesh (1 s to import) loads when a mesh is read: the command line loads it with SIGTERM handled.
     import trimesh
 
     path = Path(path)
@@ -186,7 +188,7 @@ def _material_parts(mesh_path: Path, mesh) -> list | None:
     materials into a texture atlas of its own and pointing their UVs into it: the
     parts keep each material and the file's own UVs.
     """
-    import trimesh
+    import trimesh  # as in load_mesh
 
     suffix = mesh_path.suffix.lower()
     if suffix not in (".obj", ".gltf", ".glb") or (
@@ -242,8 +244,6 @@ def embedded_image(mesh):
 
 def _check_image(path: Path) -> tuple[int, int]:
     """The (width, height) of ``path``; UserError unless it is an image file that Mitsuba's bitmap texture reads."""
-    import mitsuba as mi
-
     if not path.is_file():
         raise UserError(f"texture {path} is not a file")
     try:
@@ -289,7 +289,7 @@ def normalise_vertices(vertices: np.ndarray, up: str = "y") -> np.ndarray:
     if up == "z":  # (x, y, z) -> (x, z, -y): Z-up becomes Y-up, right-handed
         v = np.stack([v[:, 0], v[:, 2], -v[:, 1]], axis=1)
     elif up != "y":
-        raise UserError(f"--up must be 'y' or 'z', got '{up}'")
+        raise ValueError(f"up must be 'y' or 'z', got '{up}'")
     lo, hi = v.min(axis=0), v.max(axis=0)
     return (v - 0.5 * (lo + hi)) / float(np.max(hi - lo))
 

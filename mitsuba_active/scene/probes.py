@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import drjit as dr
+import mitsuba as mi
 import numpy as np
 
 from ..cameras import fibonacci_directions
@@ -48,9 +50,6 @@ def first_hits(mi_scene, origins: np.ndarray, directions: np.ndarray) -> tuple[n
     """(N,) bool arrays ``hit`` and ``front``: whether each ray (origins and
     directions (N, 3), scene units) meets a surface, and whether the first
     one faces it."""
-    import drjit as dr
-    import mitsuba as mi
-
     o, d = (np.asarray(a, dtype=np.float32) for a in (origins, directions))
     ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, j]) for j in range(3)]),
                    mi.Vector3f(*[mi.Float(d[:, j]) for j in range(3)]))

@@ -15,6 +15,8 @@ import numpy as np
 PLAIN_BASE = 0.1
 #: At most this share across the other axis, for the shape to show one plainly.
 NO_BASE = 0.05
+#: Hull volume, as a share of the cube of the box's mean side, below which a shape is flat.
+FLAT = 1e-6
 #: Facets within this angle (degrees) of facing straight down make the base.
 BASE_TILT = 3.0
 
@@ -39,6 +41,9 @@ def shown_up_axis(mesh) -> str | None:
         hull = mesh.convex_hull
     except Exception:  # flat or degenerate: no hull, no base
         return None
+    extent = np.ptp(np.asarray(mesh.vertices, dtype=np.float64), axis=0)
+    if not hull.volume > FLAT * float(np.prod(extent[extent > 0])) ** (3 / max(1, int((extent > 0).sum()))):
+        return None  # a flat shape (a sheet, a sign) lies on either face: it shows no up
     y, z = (base_share(np.asarray(hull.face_normals), np.asarray(hull.area_faces), k) for k in (1, 2))
     if y >= PLAIN_BASE and z <= NO_BASE:
         return "y"

@@ -131,8 +131,8 @@ class DatasetSource:
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.aabb_scale = None if aabb_scale is None else float(aabb_scale)
 
-    def field_options(self) -> dict:
-        """:class:`~mitsuba_active.field.FieldConfig` options the capture needs: a
+    def field_options(self, config=None) -> dict:
+        """:class:`~mitsuba_active.field.FieldConfig` options the capture needs (over any ``config``): a
         contraction (``aabb_scale`` far, else :data:`FAR_CONTRACTION`) where its
         ``aabb_scale`` is over 1 or its first view's backdrop is neither
         transparent nor plain (:func:`plain_backdrop`); else none."""

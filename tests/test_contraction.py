@@ -122,8 +122,8 @@ def far_capture(root, n=32, size=24, fov=50.0):
                                "sampler": {"type": "independent", "sample_count": 16}})
         img = np.clip(np.array(mi.render(scene, sensor=sensor, seed=k)), 0.0, 1.0)
         iio.imwrite(root / "images" / f"f_{k:02d}.png", (linear_to_srgb(img) * 255 + 0.5).astype(np.uint8))
-        frames.append({"file_path": f"images/f_{k:02d}.png", "transform_matrix": mitsuba_to_opengl(cam.to_world).tolist(),
-                       "split": "test" if k % 4 == 3 else "train"})
+        frames.append({"file_path": f"images/f_{k:02d}.png", "split": "test" if k % 4 == 3 else "train",
+                       "transform_matrix": mitsuba_to_opengl(cam.to_world).tolist()})
     meta = {"camera_angle_x": math.radians(fov), "aabb": [[-0.6] * 3, [0.6] * 3], "frames": frames}
     (root / "transforms.json").write_text(json.dumps(meta))
     return root / "transforms.json"

@@ -34,19 +34,27 @@ from .checks import is_number, is_whole
 from .colmap import (HOLDOUT_EVERY, MODEL_FILES, SPARSE, frames_from_reconstruction, heldout_indices,
                      is_colmap_project, points_bounds, read_model)
 from .errors import UserError
+from .field.config import MAX_CONTRACTION
 from .groundtruth import View, default_cache_dir
 from .images import crop, image_size, read_depth, read_rgb
 from .imageio_utils import linear_to_srgb, srgb_to_linear
 from .lens import Lens, lens_from_keys, remap, valid_scale
 from .sources import SceneSource
-from .transforms import (TRANSFORMS_FILES, bounds_from_keys, locate_files, mitsuba_to_opengl,  # noqa: F401
-                         opengl_to_mitsuba, parse_frame, read_transforms, split_frames)
+from .transforms import (TRANSFORMS_FILES, aabb_scale_from_keys, bounds_from_keys, locate_files,  # noqa: F401
+                         mitsuba_to_opengl, opengl_to_mitsuba, parse_frame, read_transforms, split_frames)
 from .viewcache import cached
 
 #: Relative difference of fl_x and fl_y accepted as square pixels (larger ones are resampled).
 SQUARE_PIXEL_TOL = 1e-3
 #: Margin of the estimated object box over the radius that fills the views.
 BOUNDS_MARGIN = 1.1
+#: How far (in half box sizes) the fields reach for a capture whose
+#: background is neither plain nor transparent and that gives no ``aabb_scale``.
+FAR_CONTRACTION = 32.0
+#: A backdrop counts as plain (a white or black studio, a composited image)
+#: where this fraction of the first view's border pixels lie within
+#: ``PLAIN_TOLERANCE`` of white or of black.
+PLAIN_FRACTION, PLAIN_TOLERANCE = 0.9, 0.03
 
 
 @dataclass(frozen=True)
@@ -99,10 +107,11 @@ class DatasetSource:
             built by :meth:`from_path`); runs are matched to it.
         cache_dir: folder where large images' views are kept once loaded
             (:mod:`~mitsuba_active.viewcache`), or None.
+        aabb_scale: instant-ngp's ``aabb_scale`` of the capture, or None.
     """
 
     def __init__(self, candidate_frames, heldout_frames, bbox_min, bbox_max, name="dataset",
-                 white_background=True, root=None, cache_dir=None):
+                 white_background=True, root=None, cache_dir=None, aabb_scale=None):
         self.candidate_frames, self.heldout_frames = list(candidate_frames), list(heldout_frames)
         self.candidates = [f.camera for f in self.candidate_frames]
         self.heldout = [f.camera for f in self.heldout_frames]
@@ -122,6 +131,19 @@ class DatasetSource:
         self._views: dict[int, View] = {}  # keyed by id(frame): frames may repeat across splits
         self.content_hash = None  # set by from_path: a digest of the dataset's JSON files
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
+        self.aabb_scale = None if aabb_scale is None else float(aabb_scale)
+
+    def field_options(self, config=None) -> dict:
+        """:class:`~mitsuba_active.field.FieldConfig` options the capture needs (over any ``config``): a
+        contraction (``aabb_scale`` far, else :data:`FAR_CONTRACTION`) where its
+        ``aabb_scale`` is over 1 or its first view's backdrop is neither
+        transparent nor plain (:func:`plain_backdrop`); else none."""
+        if self.aabb_scale is not None and self.aabb_scale > 1:
+            return {"contraction": min(self.aabb_scale, MAX_CONTRACTION)}
+        view = self.candidate_view(0)
+        if view.background is not None or plain_backdrop(view.rgb):
+            return {}
+        return {"contraction": FAR_CONTRACTION}
 
     @property
     def has_distance(self) -> bool:
@@ -156,7 +178,8 @@ class DatasetSource:
         test = [parse_frame(*t) for t in test]
         src = cls.from_parsed(train, test, bounds_from_keys(metas), name, root, downscale=downscale,
                               n_heldout=n_heldout, white_background=white_background, n_candidates=n_candidates,
-                              resolution=resolution, cache_dir=cache_dir, where=files[0])
+                              resolution=resolution, cache_dir=cache_dir, where=files[0],
+                              aabb_scale=aabb_scale_from_keys(metas))
         # What the frames are (poses, image and depth file names), wherever
         # the dataset lies and whichever of its names it was opened by.
         digest = hashlib.sha256()
@@ -167,10 +190,11 @@ class DatasetSource:
 
     @classmethod
     def from_parsed(cls, train, test, bounds, name, root, *, downscale=1, n_heldout=None, white_background=True,
-                    n_candidates=None, resolution=64, cache_dir=False, where=None) -> "DatasetSource":
+                    n_candidates=None, resolution=64, cache_dir=False, where=None, aabb_scale=None) -> "DatasetSource":
         """A source of parsed frames ``(image, to_world (Mitsuba), camera keys, (depth map, scale, is
         distance), where)`` as :meth:`from_path` reads them (``bounds``: ``(min, max)`` or None:
-        estimated); the options are :meth:`from_path`'s, ``where`` names the dataset in messages."""
+        estimated); the options are :meth:`from_path`'s, ``where`` names the dataset in messages,
+        ``aabb_scale`` is the capture's (or None)."""
         for key, count in (("n_candidates", n_candidates), ("n_heldout", n_heldout)):
             if count is not None and (not is_whole(count) or count < 0):
                 raise UserError(f"{key} must be a whole number >= 0 (or None: all frames), got {count!r}")
@@ -214,7 +238,7 @@ class DatasetSource:
             bounds = estimate_bounds([f.camera for f in train + test])
         cache = None if cache_dir is False else Path(cache_dir or default_cache_dir())
         return cls(train, test, bounds[0], bounds[1], name=name, white_background=white_background, root=root,
-                   cache_dir=cache)
+                   cache_dir=cache, aabb_scale=aabb_scale)
 
     # -- ViewSource ----------------------------------------------------------
     def candidate_view(self, index: int) -> View:
@@ -292,6 +316,15 @@ def load_view(frame: Frame, white_background: bool = True) -> View:
         distance = (z if frame.depth_is_distance else z * depth_to_distance_factor(cam)).astype(np.float32)
     background = None if alpha is None else (1.0,) * 3 if white_background else (0.0,) * 3
     return View(rgb.astype(np.float32), distance, distance > 0, cam, empty, background)
+
+
+def plain_backdrop(rgb: np.ndarray) -> bool:
+    """Whether an (H, W, 3) image's border is a plain white or black backdrop
+    (:data:`PLAIN_FRACTION` of its pixels within :data:`PLAIN_TOLERANCE`)."""
+    a = np.asarray(rgb, np.float32)
+    border = np.concatenate([a[0], a[-1], a[:, 0], a[:, -1]])
+    near = (np.abs(border - 1.0).max(axis=1) <= PLAIN_TOLERANCE) | (border.max(axis=1) <= PLAIN_TOLERANCE)
+    return bool(near.mean() >= PLAIN_FRACTION)
 
 
 def depth_to_distance_factor(camera: Camera) -> np.ndarray:

@@ -11,6 +11,7 @@ from typing import Protocol
 import numpy as np
 
 from .cameras import Camera, check_disjoint, scene_rigs
+from .field.room import room_options
 from .groundtruth import GroundTruth, View
 from .scene import load_scene, scene_from_mitsuba
 
@@ -81,6 +82,15 @@ class SceneSource:
         :func:`~mitsuba_active.cameras.scene_rigs`."""
         cands, held = scene_rigs(scene, rig, n_candidates, n_heldout, resolution, None, fov)
         return cls(scene, cands, held, spp=spp, cache_dir=cache_dir)
+
+    def field_options(self, config=None) -> dict:
+        """:class:`~mitsuba_active.field.FieldConfig` options the scene needs over
+        ``config`` (the run's, or None): a room's (:func:`~mitsuba_active.field.room.room_options`)
+        where it is one and most candidate cameras stand inside its box; else none."""
+        if not self.scene.interior:
+            return {}
+        return room_options(self.candidates, self.bbox_min, self.bbox_max,
+                            config.distance_weight if config is not None else 0.0)
 
     def candidate_view(self, index: int) -> View:
         return self.groundtruth.render(self.candidates[index])

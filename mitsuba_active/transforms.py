@@ -199,8 +199,9 @@ def bounds_from_keys(metas):
 
 
 def _ngp_box(jf: Path, meta: dict):
-    """instant-ngp's box: the unit cube of its space (``pos * scale + offset``), in the file's coordinates;
-    a note when ``aabb_scale`` says the capture's background reaches past it."""
+    """instant-ngp's box: the unit cube of its space (``pos * scale + offset``), in the file's coordinates
+    (an ``aabb_scale`` over 1 says the scene reaches past it: the fields then contract it, see
+    :meth:`~mitsuba_active.datasets.DatasetSource.field_options`)."""
     scale, offset, k = meta.get("scale", NGP_SCALE), meta.get("offset", NGP_OFFSET), meta["aabb_scale"]
     o = np.asarray(offset, dtype=np.float64) if isinstance(offset, list) else np.zeros(0)
     if not (is_number(scale, finite=True) and scale > 0 and o.shape == (3,) and np.all(np.isfinite(o))
@@ -209,7 +210,13 @@ def _ngp_box(jf: Path, meta: dict):
                         f"got {k!r}, {scale!r}, {offset!r}")
     if np.ptp(o) > 0:  # instant-ngp cycles the axes before it offsets them
         raise UserError(f"{jf}: an offset unlike on every axis ({offset}) is not read; give the box as 'aabb'")
-    if k > 1:
-        warnings.warn(f"{jf}: aabb_scale {k}: the background reaches past the object's box, and only the box "
-                      "is modelled (what lies beyond shows as the field's background)", stacklevel=4)
     return (0.0 - o) / scale, (1.0 - o) / scale
+
+
+def aabb_scale_from_keys(metas) -> float | None:
+    """instant-ngp's ``aabb_scale`` (how many times the box the scene reaches; checked by
+    :func:`bounds_from_keys`), or None where no file gives one."""
+    for _, meta in metas:
+        if is_number(meta.get("aabb_scale"), finite=True):
+            return float(meta["aabb_scale"])
+    return None

@@ -114,14 +114,13 @@ def test_non_square_pixels_are_resampled(tmp_path):
     assert not np.allclose(v[:, w // 2, 1], img[y0:y0 + h, 0, 1] / 255, atol=2e-2)
 
 
-def test_aabb_scale_gives_instant_ngps_box_and_a_note(tmp_path):
+def test_aabb_scale_gives_instant_ngps_box_and_a_contraction(tmp_path):
     write_dataset(tmp_path, n=4, extra={"aabb_scale": 1})
     src = DatasetSource.from_path(tmp_path)
     assert np.allclose(src.bbox_min, -0.5 / 0.33) and np.allclose(src.bbox_max, 0.5 / 0.33)
     write_dataset(tmp_path / "b", n=4, extra={"aabb_scale": 16, "scale": 0.5, "offset": [0.5, 0.5, 0.5]})
-    with pytest.warns(UserWarning, match="aabb_scale 16: the background reaches past"):
-        src = DatasetSource.from_path(tmp_path / "b")
-    assert np.allclose(src.bbox_max, 1.0)
+    src = DatasetSource.from_path(tmp_path / "b")
+    assert np.allclose(src.bbox_max, 1.0) and src.field_options() == {"contraction": 16.0}
     write_dataset(tmp_path / "c", n=4, extra={"aabb_scale": 16, "aabb": [[-1, -1, -1], [2, 2, 2]]})
     assert np.allclose(DatasetSource.from_path(tmp_path / "c").bbox_max, 2.0)  # the aabb wins
 

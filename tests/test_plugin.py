@@ -185,3 +185,16 @@ def test_a_variational_field_renders_its_draws(field_path, camera, tmp_path):
     assert p["rgb_var"].mean() > 1e-4
     assert np.allclose(flat[:, :3], p["rgb_mean"], atol=1e-5)
     assert np.allclose(flat[:, 3:6], p["rgb_var"], atol=1e-6)
+
+
+def test_a_contracted_field_renders_as_the_library_renders_it(tmp_path, camera):
+    assert register()
+    cfg = FieldConfig(n_levels=2, base_resolution=8, log2_table_size=12, n_samples=32, batch_rays=512,
+                      render_batch=1024, contraction=8.0)
+    path = trained_field(tmp_path / "field.npz", cfg)
+    _, img = render(path, pixel_centre_sensor(camera), linear=False)
+    p = Ensemble.load(path).predict(*camera_rays(camera))
+    flat = img.reshape(-1, img.shape[-1])
+    assert np.allclose(flat[:, :3], p["rgb_mean"], atol=1e-5)
+    assert np.allclose(flat[:, 6], p["distance_mean"], rtol=1e-4, atol=1e-4)
+    assert p["distance_mean"].max() > 4.0  # beyond the box, which the camera is 2.8 from the centre of

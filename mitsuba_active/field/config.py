@@ -22,6 +22,9 @@ MAX_BATCH_SAMPLES = 1 << 24
 #: beyond any use: each member holds its own tables and Adam moments).
 MAX_MEMBERS = 64
 MAX_STEPS = 10_000_000
+#: Farthest reach of a contracted field, in half box sizes (past it the
+#: contracted shell is thinner than float32 resolves near its edge).
+MAX_CONTRACTION = 1e5
 
 
 def image_scaled_grid(width: int) -> dict:
@@ -130,6 +133,20 @@ class FieldConfig:
     bbox_padding:
         The bounding box is grown by this fraction of its size on every side
         before the grid is laid out and rays are clipped.
+    contraction:
+        0 (the default): the field lives in the padded box and rays are
+        sampled between their entry and exit of it. ``F`` > 1: the scene
+        reaches ``F`` times the padded box's half size from its centre
+        (instant-ngp's ``aabb_scale``), for captures whose background lies
+        far beyond the object: positions in the box's normalised
+        coordinates ``x`` (the box is ``[-1, 1]^3``) are contracted as in
+        mip-NeRF 360 with the max-norm, ``x`` where ``|x| <= 1``, else
+        ``(2 - 1/|x|) x/|x|``, so the grids cover the cube ``[-2, 2]^3``
+        and the box keeps an undistorted half of each axis. Half of a ray's
+        samples lie uniformly in the box, the rest beyond it, evenly spaced
+        in contracted space (linear in disparity from the centre) up to
+        ``F``; rays that miss the box get all of them there. Distances stay
+        metric (see docs/field.md, "Unbounded scenes").
 
     Rendering
     ---------
@@ -140,6 +157,14 @@ class FieldConfig:
         Most rays per member in one render kernel. A call's rays are padded
         to the next power of two (at least 64) below this, or to a whole
         number of such batches, so compiled kernels are reused.
+
+    near:
+        Samples start at least this fraction of the padded box's diagonal
+        from a ray's origin (0: at the box, or at the camera inside it).
+        Cameras inside a room see no empty rays that would clear the space
+        in front of them; a near distance keeps each view from explaining
+        itself with density just before its own lens (see docs/field.md,
+        "Rooms").
 
     Training
     --------
@@ -193,7 +218,9 @@ class FieldConfig:
     init_scale: float = 0.1
     density_bias: float = -1.0
     bbox_padding: float = 0.05
+    contraction: float = 0.0
     n_samples: int = 64
+    near: float = 0.0
     render_batch: int = 4096
     batch_rays: int = 4096
     lr: float = 0.05
@@ -225,7 +252,7 @@ class FieldConfig:
         # Ranges where training means what the option says (a negative rate
         # would climb the loss without any error).
         positive = ("per_level_scale", "lr", "epsilon")
-        non_negative = ("init_scale", "bbox_padding", "lr_background", "distance_weight", "empty_weight")
+        non_negative = ("init_scale", "bbox_padding", "near", "lr_background", "distance_weight", "empty_weight")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise UserError(f"FieldConfig.{name} must be > 0, got {getattr(self, name)}")
@@ -249,9 +276,16 @@ class FieldConfig:
         if log_finest > math.log(MAX_RESOLUTION):
             raise UserError(f"FieldConfig: the finest level would have more than {MAX_RESOLUTION} cells per axis "
                             f"(base_resolution * per_level_scale ** (n_levels - 1))")
+        if self.near >= 1:
+            raise UserError(f"FieldConfig.near must be below 1 (a fraction of the box's diagonal), got {self.near}")
         if self.bbox_padding > 1:
             raise UserError(f"FieldConfig.bbox_padding must be at most 1 (a fraction of the box per side), "
                             f"got {self.bbox_padding}")
+        if not (self.contraction == 0 or 1 < self.contraction <= MAX_CONTRACTION):
+            raise UserError(f"FieldConfig.contraction must be 0 (off) or in (1, {MAX_CONTRACTION:g}] (how many "
+                            f"half box sizes the scene reaches), got {self.contraction}")
+        if self.contraction and self.n_samples < 2:
+            raise UserError("FieldConfig: a contracted field needs n_samples >= 2 (half in the box, half beyond)")
         for name in ("batch_rays", "render_batch"):
             if getattr(self, name) * self.n_samples > MAX_BATCH_SAMPLES:
                 raise UserError(f"FieldConfig: {name} x n_samples = {getattr(self, name) * self.n_samples} "

@@ -189,7 +189,9 @@ class Ensemble:
                            n_members=self.n_members, occupancy=self._occupied,
                            occupancy_resolution=int(cfg.occupancy_resolution),
                            view=self._opt["view"] if cfg.view_degree > 0 else None,
-                           view_degree=int(cfg.view_degree), view_resolution=int(cfg.view_resolution))
+                           view_degree=int(cfg.view_degree), view_resolution=int(cfg.view_resolution),
+                           contraction=float(cfg.contraction),
+                           near=float(cfg.near) * float(np.linalg.norm(np.subtract(self.box_max, self.box_min))))
 
     @property
     def view_size(self) -> int:

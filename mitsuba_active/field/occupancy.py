@@ -46,9 +46,11 @@ def cell_opacity(params, resolution: int, key):
         resolution: G, cells per axis.
         key: ``mi.UInt32`` (opaque) seed of this refresh's jitter.
     Returns:
-        ``mi.Float`` of G^3 values, ``max_k sigma_k * diag / n_samples``.
+        ``mi.Float`` of G^3 values, ``max_k sigma_k * diag / n_samples``; in
+        a contracted field the step is a box sample's (``diag / (n_samples //
+        2)``) times the cell's stretch (:func:`.render.contracted_stretch`).
     """
-    from .render import field_at, hash_u32, uniform_from_u32
+    from .render import contracted_stretch, field_at, hash_u32, uniform_from_u32
 
     G = int(resolution)
     i = dr.arange(mi.UInt32, G ** 3)
@@ -58,6 +60,8 @@ def cell_opacity(params, resolution: int, key):
                          uniform_from_u32(hash_u32(h ^ 0xB5297A4D)))
     u = mi.Point3f((cell + jitter) * (1.0 / G))
     step = params.diag / float(params.n_samples)
+    if params.contraction:
+        step = params.diag / float(params.n_samples // 2) * contracted_stretch(u)
     best = mi.Float(0.0)
     with dr.suspend_grad():
         for raw in query(params.grid, params.layout, params.n_members, u, None, True):

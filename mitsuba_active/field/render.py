@@ -54,6 +54,10 @@ class FieldParams:
             (see :mod:`.view`), or None (a diffuse field).
         view_degree, view_resolution: its spherical-harmonic degree and
             cells per axis.
+        contraction: 0, or how far the contracted scene reaches in half
+            box sizes (``FieldConfig.contraction``).
+        near: distance from a ray's origin where its samples may start
+            (scene units; ``FieldConfig.near`` times the diagonal).
     """
 
     grid: object
@@ -69,6 +73,8 @@ class FieldParams:
     view: object = None
     view_degree: int = 0
     view_resolution: int = 0
+    contraction: float = 0.0
+    near: float = 0.0
 
     @property
     def diag(self) -> float:
@@ -90,14 +96,15 @@ def uniform_from_u32(h):
     return mi.Float(h >> 8) * (1.0 / 16777216.0)
 
 
-def ray_box(o, d, box_min, box_max):
+def ray_box(o, d, box_min, box_max, near: float = 0.0):
     """Entry/exit distances of rays with an axis-aligned box.
 
     Args:
-        o: ``mi.Point3f`` origins; d: ``mi.Vector3f`` unit directions.
+        o: ``mi.Point3f`` origins; d: ``mi.Vector3f`` unit directions;
+        near: the least distance returned as entry (scene units).
     Returns:
-        (t_near, t_far) ``mi.Float``; ``t_near`` is clamped to 0 (a camera
-        inside the box starts sampling at its centre) and ``t_far <= t_near``
+        (t_near, t_far) ``mi.Float``; ``t_near`` is clamped to ``near`` (a
+        camera inside the box starts sampling there) and ``t_far <= t_near``
         means the ray misses.
     """
     # Avoid 0 * inf = NaN for axis-parallel rays.
@@ -109,7 +116,7 @@ def ray_box(o, d, box_min, box_max):
     t1 = (mi.Vector3f(box_max) - o) * inv
     tmin = dr.minimum(t0, t1)
     tmax = dr.maximum(t0, t1)
-    t_near = dr.maximum(dr.max(tmin), 0.0)
+    t_near = dr.maximum(dr.max(tmin), near)
     t_far = dr.min(tmax)
     return t_near, t_far
 
@@ -118,6 +125,83 @@ def box_normalised(params: FieldParams, p):
     """Points ``p`` (``mi.Point3f``, scene units) in the unit cube of the field's padded box."""
     return mi.Point3f((p - mi.Vector3f(params.box_min)) * mi.Vector3f(1.0 / np.subtract(params.box_max,
                                                                                          params.box_min)))
+
+
+def field_position(params: FieldParams, p):
+    """Grid coordinates in the unit cube (``mi.Point3f``) of points ``p`` (scene
+    units): box-normalised, or for a contracted field the contracted cube
+    ``[-2, 2]^3`` mapped onto it (the box is its middle half)."""
+    u = box_normalised(params, p)
+    if not params.contraction:
+        return u
+    x = mi.Vector3f(u) * 2.0 - 1.0
+    r = dr.max(dr.abs(x))
+    x = dr.select(r > 1.0, x * ((2.0 - dr.rcp(r)) * dr.rcp(r)), x)
+    return mi.Point3f(dr.fma(x, 0.25, 0.5))
+
+
+def contracted_stretch(u):
+    """Scene length per unit of contracted length at grid coordinates ``u``
+    (``mi.Float``, relative to the box: 1 inside it, ``R**2`` on the shell of
+    points ``R`` half box sizes out)."""
+    r = dr.max(dr.abs(mi.Vector3f(u) * 4.0 - 2.0))
+    return dr.select(r > 1.0, dr.rcp(dr.square(dr.maximum(2.0 - r, 1e-6))), 1.0)
+
+
+def _box_exit(q, e, radius):
+    """Distance at which rays ``q + t e`` (box-normalised, centred: the box is
+    ``[-1, 1]^3``) leave the cube ``[-radius, radius]^3``."""
+    eps = 1e-9
+    e_safe = dr.select(dr.abs(e) < eps, dr.copysign(eps, e), e)
+    return dr.min((dr.copysign(mi.Vector3f(radius), e_safe) - q) * dr.rcp(e_safe))
+
+
+def _contracted_samples(o, d, params: FieldParams, jitter):
+    """:func:`sample_along_rays` of a contracted field: the first half of a
+    ray's samples uniform over its stretch in the box, the rest evenly spaced
+    in contracted space from the box (a ray that misses it: from its point
+    nearest the centre, with all its samples) out to ``params.contraction``
+    half box sizes, each sample inside its bin ``[t0, t1]``."""
+    S = int(params.n_samples)
+    S_in = S // 2
+    R = max(dr.width(o), dr.width(d))
+    t_near, t_far = ray_box(o, d, params.box_min, params.box_max, params.near)
+    i = dr.arange(mi.UInt32, R * S)
+    ray = i // S
+    k = i - ray * S
+    tn = dr.gather(mi.Float, t_near, ray)
+    tf = dr.gather(mi.Float, t_far, ray)
+    oo = dr.gather(mi.Point3f, o, ray) if dr.width(o) > 1 else mi.Point3f(o)
+    dd = dr.gather(mi.Vector3f, d, ray) if dr.width(d) > 1 else mi.Vector3f(d)
+    hit = tf > tn
+    frac = 0.5 if jitter is None else jitter
+    # The box: bins of equal length.
+    delta_in = dr.maximum(tf - tn, 0.0) * (1.0 / S_in)
+    t_in = dr.fma(mi.Float(k) + frac, delta_in, tn)
+    # Beyond it: bins of equal contracted length, c = 2 - 1/r for the shell r.
+    lo, hi = np.asarray(params.box_min, np.float64), np.asarray(params.box_max, np.float64)
+    centre, inv_half = mi.Point3f(0.5 * (lo + hi)), mi.Vector3f(2.0 / (hi - lo))
+    q, e = (oo - centre) * inv_half, dd * inv_half
+    t_star = dr.maximum(dr.dot(centre - oo, dd), 0.0)
+    r_start = dr.select(hit, 1.0, dr.maximum(dr.max(dr.abs(dr.fma(e, t_star, q))), 1.0))
+    c_start, c_end = 2.0 - dr.rcp(r_start), 2.0 - 1.0 / float(params.contraction)
+    n_out = dr.select(hit, mi.Float(S - S_in), mi.Float(S))
+    k_out = dr.select(hit, mi.Float(k) - S_in, mi.Float(k))
+    step = dr.maximum(c_end - c_start, 0.0) / n_out
+    c0 = dr.fma(k_out, step, c_start)
+
+    def at(c):  # distance where the ray leaves the shell of contracted radius c
+        return dr.maximum(_box_exit(q, e, dr.rcp(2.0 - c)), 0.0)
+
+    t0, t1 = at(c0), at(c0 + step)
+    inner = hit & (mi.Float(k) < S_in)
+    t = dr.select(inner, t_in, at(dr.fma(frac, step, c0)))
+    delta = dr.select(inner, delta_in, t1 - t0)
+    p = dr.fma(dd, t, oo)
+    u = field_position(params, p)
+    valid = dr.select(inner, hit, mi.Bool(True))
+    return dict(ray=ray, t=t, delta=delta, p=p, u=u, valid=valid, ray_valid=dr.full(mi.Bool, True, R), o=o, d=d,
+                uniform=False)
 
 
 def sample_along_rays(o, d, params: FieldParams, jitter=None):
@@ -133,11 +217,17 @@ def sample_along_rays(o, d, params: FieldParams, jitter=None):
         ``t`` (distance from origin), ``delta`` (bin length), ``p``
         (Point3f), ``u`` (Point3f box-normalised), ``valid`` (Bool), and
         per ray (length R) ``ray_valid`` (Bool: the ray meets the box), ``o``
-        and ``d`` (the rays, as given).
+        and ``d`` (the rays, as given), and ``uniform`` (a Python bool: the
+        bins of a ray are of one length). A contracted field
+        (``params.contraction``) samples the box and the space beyond it
+        (see :func:`_contracted_samples`): ``u`` is then in contracted
+        coordinates (:func:`field_position`) and every ray is valid.
     """
+    if params.contraction:
+        return _contracted_samples(o, d, params, jitter)
     S = int(params.n_samples)
     R = max(dr.width(o), dr.width(d))  # one origin (a pinhole camera's) may serve every ray
-    t_near, t_far = ray_box(o, d, params.box_min, params.box_max)
+    t_near, t_far = ray_box(o, d, params.box_min, params.box_max, params.near)
     i = dr.arange(mi.UInt32, R * S)
     ray = i // S
     k = mi.Float(i - ray * S)
@@ -153,7 +243,7 @@ def sample_along_rays(o, d, params: FieldParams, jitter=None):
     t = dr.fma(frac, delta, tn)
     p = dr.fma(dd, t, oo)
     u = box_normalised(params, p)
-    return dict(ray=ray, t=t, delta=delta, p=p, u=u, valid=valid, ray_valid=t_far > t_near, o=o, d=d)
+    return dict(ray=ray, t=t, delta=delta, p=p, u=u, valid=valid, ray_valid=t_far > t_near, o=o, d=d, uniform=True)
 
 
 def _raw_to_field(raw, valid, density_bias: float, inv_diag: float):
@@ -458,11 +548,12 @@ def _marching(s: dict, return_weights: bool) -> bool:
     """Whether to composite with :func:`composite_marched`: on the CPU, where
     it saves the per-sample arrays' memory traffic, unless the weights are
     wanted or the sample distances carry gradients (it differentiates the
-    raw features only). The GPU keeps the blocked reductions: a loop over
+    raw features only), or the bins of a ray differ in length (it reads one
+    per ray: a contracted field's samples). The GPU keeps the blocked reductions: a loop over
     S samples in one lane per ray would occupy few of its threads (not
     measured there)."""
     return (not return_weights and dr.backend_v(mi.Float) == dr.JitBackend.LLVM
-            and not dr.grad_enabled(s["t"], s["delta"]))
+            and not dr.grad_enabled(s["t"], s["delta"]) and s.get("uniform", True))
 
 
 def _marched_valid(params: FieldParams, s: dict):
@@ -516,7 +607,7 @@ def _view_colour(params: FieldParams, s: dict, distance, member):
     """The view-dependent colour residual (``mi.Color3f``, per ray) at the
     rays' expected hits ``distance`` away (see :mod:`.view`)."""
     o, d = mi.Point3f(s["o"]), mi.Vector3f(s["d"])
-    u = box_normalised(params, dr.fma(d, distance, o))
+    u = field_position(params, dr.fma(d, distance, o))
     return view_residual(params.view, params.view_resolution, params.view_degree, params.n_members, u, d, member)
 
 

@@ -1,0 +1,44 @@
+"""Rooms seen from inside: the empty-room start and the options rooms get."""
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+from .conftest import tiny_source
+from mitsuba_active.errors import UserError
+from mitsuba_active.field import Ensemble, FieldConfig
+from mitsuba_active.field.render import sample_along_rays
+from mitsuba_active.field.room import ROOM_DISTANCE_OPTIONS, ROOM_OPTIONS, cameras_inside
+from mitsuba_active.run import RunConfig, source_field_config
+
+
+def test_samples_start_near_away_from_the_origin():
+    lo, hi = np.zeros(3), np.array([2.0, 1.0, 2.0])
+    o, d = np.array([[1.0, 0.5, 1.0], [-1.0, 0.5, 1.0]]), np.array([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    for near in (0.0, 0.1):
+        ens = Ensemble(lo, hi, 1, FieldConfig(n_samples=16, near=near), seed=0)
+        t = np.array(sample_along_rays(mi.Point3f(o.T), mi.Vector3f(d.T), ens.params())["t"]).reshape(2, 16)
+        start = max(near * np.linalg.norm(hi - lo) * 1.1, 0.0)
+        assert t[0, 0] - 0.5 * (t[0, 1] - t[0, 0]) == pytest.approx(start, abs=1e-5)  # inside: from near on
+        assert t[1, 0] - 0.5 * (t[1, 1] - t[1, 0]) == pytest.approx(0.9, abs=1e-5)  # outside: from the box on
+    with pytest.raises(UserError, match="near"):
+        FieldConfig(near=1.0)
+
+
+def test_rooms_get_the_room_options_objects_do_not(shared_data, sphere_xml):
+    cbox = tiny_source(shared_data / "mitsuba" / "cbox" / "cbox.xml", n_candidates=6, n_heldout=2)
+    assert cameras_inside(cbox.candidates, cbox.bbox_min, cbox.bbox_max)
+    assert cbox.field_options() == ROOM_OPTIONS
+    ball = tiny_source(sphere_xml, n_candidates=6, n_heldout=2)
+    assert ball.field_options() == {} and not cameras_inside(ball.candidates, ball.bbox_min, ball.bbox_max)
+    for planner in (True, False):  # the planner's ensemble and the evaluation field alike
+        config = source_field_config(cbox, RunConfig(scene="x", resolution=16), planner)
+        assert all(getattr(config, k) == v for k, v in ROOM_OPTIONS.items())
+    # Trained on the distance maps too, a room gets the options that suit those.
+    config = source_field_config(cbox, RunConfig(scene="x", resolution=16, distance_weight=10.0), False)
+    assert config.near == ROOM_DISTANCE_OPTIONS.get("near", 0.0)
+    assert config.n_levels == ROOM_DISTANCE_OPTIONS.get("n_levels", 2)  # else the preset's at 16 pixels
+    # The run's own field options come first.
+    mine = {"n_levels": 3, "near": 0.0}
+    config = source_field_config(cbox, RunConfig(scene="x", resolution=16, field=mine))
+    assert (config.n_levels, config.near) == (3, 0.0)

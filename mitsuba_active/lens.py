@@ -185,7 +185,7 @@ def undistort(lens: Lens, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, n
     return np.where(found, x, xd), np.where(found, y, yd), found
 
 
-@lru_cache(maxsize=8)
+@lru_cache(maxsize=2)  # frames share a lens; a 4096x4096 image's rays take 400 MB
 def pixel_rays(lens: Lens) -> tuple[np.ndarray, np.ndarray]:
     """The rays through the pixel centres of an image of ``lens``, row-major: ``(local, valid)``,
     (H*W, 3) float64 directions ``(x, y, 1)`` in OpenCV's camera frame (x right, y down, z forward;

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from mitsuba_active.cameras import Camera, camera_rays, camera_valid, look_at
-from mitsuba_active.datasets import mitsuba_to_opengl
+from mitsuba_active.datasets import depth_to_distance_factor, mitsuba_to_opengl
 from mitsuba_active.errors import UserError
 from mitsuba_active.groundtruth import View
 from mitsuba_active.lens import FISHEYE, RADTAN, Lens, capture_through, distort
@@ -66,6 +66,11 @@ def test_a_lens_cameras_rays_land_on_their_pixel_centres(model, coeffs):
     assert "lens" not in pinhole.to_dict()
     half = cam.with_resolution(20, 15)
     assert half.lens.fx == pytest.approx(20.0) and half.lens.cx == pytest.approx(21.3 / 2)
+    # A lens without distortion, square pixels and a centred principal point is the pinhole.
+    plain = Camera(cam.to_world, 60.0, 40, 30, lens=lens_of(model, {}, pinhole.intrinsics()[0, 0], (40, 30)))
+    if model == RADTAN:
+        assert np.allclose(camera_rays(plain)[1], camera_rays(pinhole)[1], atol=1e-6)
+        assert np.allclose(depth_to_distance_factor(plain), depth_to_distance_factor(pinhole), atol=1e-5)
     with pytest.raises(UserError, match="cannot be rendered by Mitsuba's pinhole sensor"):
         cam.sensor()
     with pytest.raises(UserError, match="lens is for 40x30 images"):

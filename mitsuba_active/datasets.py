@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import Camera
+from .cameras import Camera, camera_rays
 from .checks import is_number, is_whole
 from .colmap import (HOLDOUT_EVERY, MODEL_FILES, SPARSE, frames_from_reconstruction, heldout_indices,
                      is_colmap_project, points_bounds, read_model)
@@ -38,13 +38,13 @@ from .field.config import MAX_CONTRACTION
 from .groundtruth import View, default_cache_dir
 from .images import crop, image_size, read_depth, read_rgb
 from .imageio_utils import linear_to_srgb, srgb_to_linear
-from .lens import Lens, lens_from_keys, remap, valid_scale
+from .lens import Lens, lens_from_keys
 from .sources import SceneSource
 from .transforms import (TRANSFORMS_FILES, aabb_scale_from_keys, bounds_from_keys, locate_files,  # noqa: F401
                          mitsuba_to_opengl, opengl_to_mitsuba, parse_frame, read_transforms, split_frames)
 from .viewcache import cached
 
-#: Relative difference of fl_x and fl_y accepted as square pixels (larger ones are resampled).
+#: Relative difference of fl_x and fl_y accepted as square pixels (larger ones make a lens camera).
 SQUARE_PIXEL_TOL = 1e-3
 #: Margin of the estimated object box over the radius that fills the views.
 BOUNDS_MARGIN = 1.1
@@ -73,9 +73,9 @@ class Frame:
             map (along each ray, from the optical centre) when ``depth_is_distance``.
         depth_scale: factor from the map's stored values to scene units.
         depth_is_distance: the map already holds distances (``distance_file_path``).
-        lens: the full-resolution image's lens when it is resampled to a
-            pinhole with square pixels before cropping (distortion, or
-            ``fl_y`` unlike ``fl_x``), else None.
+        lens: the full-resolution image's lens when the camera follows one
+            (distortion, or ``fl_y`` unlike ``fl_x``; the camera holds it
+            cropped and downscaled), else None.
     """
 
     image: Path
@@ -290,11 +290,9 @@ def load_view(frame: Frame, white_background: bool = True) -> View:
     if rgb.shape[1::-1] != tuple(frame.full_size):
         w, h = frame.full_size
         raise UserError(f"{frame.image} is {rgb.shape[1]}x{rgb.shape[0]} pixels, the dataset says {w}x{h}")
-    # Resampled and averaged in linear light, as a camera pixel (and Mitsuba's box filter) does.
+    # Averaged in linear light, as a camera pixel (and Mitsuba's box filter) does; a lens camera's
+    # rays follow the lens through the pixels as captured, so nothing is resampled.
     rgb = srgb_to_linear(rgb)
-    if lens is not None:
-        rgb = remap(lens, rgb)
-        alpha = None if alpha is None else remap(lens, alpha)
     rgb = linear_to_srgb(area_downscale(crop(rgb, frame.crop, frame.image), f))
     # Known empty: every full-resolution pixel under a downscaled one is transparent.
     empty = (np.zeros(rgb.shape[:2], bool) if alpha is None
@@ -303,11 +301,9 @@ def load_view(frame: Frame, white_background: bool = True) -> View:
     if frame.depth is not None:
         entry = "distance_file_path" if frame.depth_is_distance else "depth_file_path"
         depth = read_depth(frame.depth, entry)
-        if lens is not None:
-            if depth.shape[1::-1] != lens.size:
-                raise UserError(f"{frame.depth} is {depth.shape[1]}x{depth.shape[0]} pixels, its image "
-                                f"{lens.size[0]}x{lens.size[1]}")
-            depth = remap(lens, depth, nearest=True)  # depths of neighbours would lie on no surface
+        if lens is not None and depth.shape[1::-1] != lens.size:
+            raise UserError(f"{frame.depth} is {depth.shape[1]}x{depth.shape[0]} pixels, its image "
+                            f"{lens.size[0]}x{lens.size[1]}")
         depth = crop(depth, frame.crop, frame.depth) * frame.depth_scale
         # Depth at the full-resolution pixel nearest each downscaled pixel centre:
         # averaging across a silhouette would invent depths that lie on no surface.
@@ -329,6 +325,9 @@ def plain_backdrop(rgb: np.ndarray) -> bool:
 
 def depth_to_distance_factor(camera: Camera) -> np.ndarray:
     """(H, W) factor turning depth along the optical axis into distance along pixel-centre rays."""
+    if camera.lens is not None:  # the rays the lens bends: 1 / their cosine to the optical axis
+        _, d = camera_rays(camera)
+        return (1.0 / (d.astype(np.float64) @ camera.forward)).reshape(camera.height, camera.width)
     k = camera.intrinsics()
     x = (np.arange(camera.width) + 0.5 - k[0, 2]) / k[0, 0]
     y = (np.arange(camera.height) + 0.5 - k[1, 2]) / k[1, 1]
@@ -363,17 +362,17 @@ def _window(parsed, full_size, downscale: int, size=None) -> tuple:
     """``(x0, y0, width, height)``: the crop window in full-resolution pixels of a
     frame whose image is ``full_size`` (width, height).
 
-    Our camera model has its principal point at the image centre: the window
+    A pinhole camera has its principal point at the image centre: the window
     is the largest one centred on (cx, cy), at most ``size`` (width, height),
-    trimmed to multiples of the factor."""
+    trimmed to multiples of the factor. A lens camera carries its principal
+    point: the window is centred on the image's centre."""
     _, _, keys, _, where = parsed
     w, h = full_size
     _, _, cx, cy = _intrinsics(keys, w, h, where)
-    lens = _lens(parsed, full_size)
-    # Undistorted, the image's corners may see past the captured one: a narrower window.
-    s = 1.0 if lens is None else valid_scale(lens)
-    x0, wc = _centred_window(cx, w, downscale, size and size[0], s * 0.5 * w)
-    y0, hc = _centred_window(cy, h, downscale, size and size[1], s * 0.5 * h)
+    if _lens(parsed, full_size) is not None:
+        cx, cy = 0.5 * w, 0.5 * h
+    x0, wc = _centred_window(cx, w, downscale, size and size[0])
+    y0, hc = _centred_window(cy, h, downscale, size and size[1])
     if wc < downscale or hc < downscale:
         raise UserError(f"{where}: the image ({w}x{h}) is too small for downscale {downscale}")
     return x0, y0, wc, hc
@@ -386,24 +385,26 @@ def _make_frame(parsed, full_size, downscale: int, size=None) -> Frame:
     fx, _, _, _ = _intrinsics(keys, w, h, where)
     x0, y0, wc, hc = _window(parsed, full_size, downscale, size)
     fov = math.degrees(2.0 * math.atan(0.5 * wc / fx))
-    cam = Camera(to_world, fov, wc // downscale, hc // downscale)
-    return Frame(image, cam, (x0, y0, wc, hc), downscale, (w, h), *depth, lens=_lens(parsed, full_size))
+    lens = _lens(parsed, full_size)
+    cam = Camera(to_world, fov, wc // downscale, hc // downscale,
+                 lens=None if lens is None else lens.cropped(x0, y0, wc, hc, downscale))
+    return Frame(image, cam, (x0, y0, wc, hc), downscale, (w, h), *depth, lens=lens)
 
 
 def _lens(parsed, full_size) -> Lens | None:
-    """The frame's :class:`~mitsuba_active.lens.Lens` when its image must be resampled, else None."""
+    """The frame's :class:`~mitsuba_active.lens.Lens` when its camera must follow one (distortion,
+    or non-square pixels), else None (a pinhole)."""
     _, _, keys, _, where = parsed
     fx, fy, cx, cy = _intrinsics(keys, *full_size, where)
     lens = lens_from_keys(keys, fx, fy, cx, cy, full_size, where)
     return lens if lens.distorted or abs(fx - fy) > SQUARE_PIXEL_TOL * fx else None
 
 
-def _centred_window(c: float, size: int, f: int, most: int | None = None,
-                    half_most: float = math.inf) -> tuple[int, int]:
+def _centred_window(c: float, size: int, f: int, most: int | None = None) -> tuple[int, int]:
     """``(start, length)``: the widest pixel window centred on ``c`` (to half a pixel), length a multiple
-    of ``f``, at most ``most`` and reaching at most ``half_most`` pixels either side of ``c``."""
+    of ``f``, at most ``most``."""
     centre = int(round(c * 2)) / 2  # centres fall on pixel edges or centres only
-    half = min(centre, size - centre, math.floor(half_most * 2) / 2)
+    half = min(centre, size - centre)
     length = min(int(2 * half), most or size) // f * f
     start = int(round(centre - length / 2))
     return max(start, 0), length

@@ -8,10 +8,12 @@ OpenGL/Blender camera convention (camera looks along -Z, +Y up) that those
 tools expect. Each frame carries its PNG image; an EXR with the distance
 from the optical centre (channel ``Z``), except in runs of a dataset
 without depth maps; and a mask (``mask_path``, white where the view sees
-geometry) when the run knows where that is. The images are the pinhole
-views the run's fields trained on and were scored against, so the lens is
-undistorted (``k1`` .. ``p2`` = 0); a dataset frame that was undistorted
-keeps its source image's lens in ``source_camera``. The scene's bounds are
+geometry) when the run knows where that is. The images are the views the
+run's fields trained on and were scored against: a pinhole's (``OPENCV``,
+``k1`` .. ``p2`` = 0), or a dataset camera's as captured with its lens
+(``camera_model``, ``fl_x`` .. ``cy`` and coefficients at the exported
+resolution); a dataset frame with a lens also keeps its source image's
+lens in ``source_camera``. The scene's bounds are
 written as ``aabb`` (as :mod:`.datasets` reads them back).
 """
 
@@ -99,7 +101,7 @@ def export_transforms(run_dir, out_dir=None) -> Path:
     ref = cams[0]
     # Cameras of their own (rig xml) may differ in field of view: then every
     # frame carries its intrinsics, which nerfstudio reads before the top level's.
-    per_frame = any(f.camera.fov != ref.fov for f in train + test)
+    per_frame = any(camera_keys(f.camera) != camera_keys(ref) for f in train + test)
     # Every file goes to a temporary name first and all are renamed at the end, with
     # Ctrl-C held back: a failed export (a full disk) leaves the earlier one whole.
     top, before = new_entries(out)
@@ -152,8 +154,7 @@ def _write_frame(frame: ExportFrame, stage, masks: bool, per_frame: bool) -> dic
         entry["mask_path"] = mask
     cam = frame.camera
     if per_frame:
-        kc = cam.intrinsics()
-        entry.update(camera_angle_x=math.radians(cam.fov), fl_x=kc[0, 0], fl_y=kc[1, 1], cx=kc[0, 2], cy=kc[1, 2])
+        entry.update(camera_keys(cam))
     return {**entry, **frame.keys, "transform_matrix": mitsuba_to_opengl(cam.to_world).tolist()}
 
 
@@ -250,12 +251,18 @@ def _read_distance(path: Path) -> np.ndarray:
     return read_exr(path)["Z"]
 
 
+def camera_keys(cam: Camera) -> dict:
+    """A camera's intrinsics and lens as transforms.json keys (a pinhole's: ``OPENCV``, no distortion)."""
+    k = cam.intrinsics()
+    lens = {"camera_model": "OPENCV", "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0} if cam.lens is None \
+        else cam.lens.to_keys()
+    return {**lens, "camera_angle_x": math.radians(cam.fov), "fl_x": float(k[0, 0]), "fl_y": float(k[1, 1]),
+            "cx": float(k[0, 2]), "cy": float(k[1, 2])}
+
+
 def _transforms(rec: dict, ref: Camera, distances: bool, masks: bool, frames: list) -> dict:
     """The content of a transforms file: the shared camera (``ref``'s), the scene's bounds, the frames."""
-    k = ref.intrinsics()
-    data = {"camera_model": "OPENCV", "camera_angle_x": math.radians(ref.fov),
-            "fl_x": k[0, 0], "fl_y": k[1, 1], "cx": k[0, 2], "cy": k[1, 2], "w": ref.width, "h": ref.height,
-            "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0}
+    data = {**camera_keys(ref), "w": ref.width, "h": ref.height}
     if rec.get("bbox"):  # the scene's bounds (runs recorded before they were kept have none)
         data["aabb"] = rec["bbox"]
     if distances:

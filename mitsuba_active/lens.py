@@ -1,12 +1,12 @@
-"""Lens distortion of captured images, and its removal (OpenCV camera models).
+"""Lens distortion of captured images: the rays through their pixels (OpenCV camera models).
 
 Real captures (phones, COLMAP, nerfstudio's ``ns-process-data``) come with
 a distortion model. :class:`Lens` holds one frame's intrinsics and model;
-:func:`undistort_maps` gives, for every pixel of a pinhole image with square
-pixels (focal length ``fx`` in both axes, the same principal point and
-size), the point of the captured image it sees, and :func:`remap` resamples
-an image there (OpenCV's ``cv2.remap``). Undistorted images keep the field,
-the planners and the Mitsuba plugin pinhole.
+:func:`pixel_rays` gives the ray through every pixel centre of the image as
+captured (the inverse of :func:`distort`, per pixel), which a dataset's
+cameras train and score along. :func:`undistort_maps` and :func:`remap`
+resample an image to a pinhole instead (the route datasets took before, which
+crops the periphery the lens sees: ``benchmarks/distortion_quality.py``).
 
 Models, on normalised image coordinates ``(x, y)``, ``r^2 = x^2 + y^2``:
 
@@ -38,6 +38,8 @@ TRANSFORMS_MODELS = {"PINHOLE": RADTAN, "SIMPLE_PINHOLE": RADTAN, "OPENCV": RADT
 COEFF_NAMES = ("k1", "k2", "k3", "k4", "p1", "p2")
 #: Radius steps searched for where the radial model stops growing.
 FOLD_SAMPLES = 4096
+#: Newton steps of the inverse distortion, and the round trip (pixels) a pixel's ray must meet.
+INVERSE_STEPS, INVERSE_TOL_PX = 50, 1e-3
 
 
 @dataclass(frozen=True)
@@ -67,6 +69,40 @@ class Lens:
     def to_keys(self) -> dict:
         """The lens as transforms.json keys (``camera_model`` and the coefficients)."""
         return {"camera_model": self.model, **dict(zip(COEFF_NAMES, self.coeffs))}
+
+    def cropped(self, x0: int, y0: int, width: int, height: int, downscale: int = 1) -> "Lens":
+        """The lens of the window ``(x0, y0, width, height)`` of the image, shrunk ``downscale`` times
+        (its pixel ``(i, j)`` covers the window's ``downscale`` x ``downscale`` block ``(i, j)``)."""
+        f = float(downscale)
+        return Lens(self.model, self.fx / f, self.fy / f, (self.cx - x0) / f, (self.cy - y0) / f, self.coeffs,
+                    (int(width) // int(downscale), int(height) // int(downscale)))
+
+    def scaled(self, width: int, height: int) -> "Lens":
+        """The lens of the image resized to ``width`` x ``height`` pixels."""
+        sx, sy = width / self.size[0], height / self.size[1]
+        return Lens(self.model, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy, self.coeffs,
+                    (int(width), int(height)))
+
+
+def lens_to_dict(lens: Lens) -> dict:
+    """The lens as JSON-ready values (:func:`lens_from_dict` reads them back)."""
+    return {"model": lens.model, "fx": lens.fx, "fy": lens.fy, "cx": lens.cx, "cy": lens.cy,
+            "coeffs": list(lens.coeffs), "size": list(lens.size)}
+
+
+def lens_from_dict(d) -> Lens:
+    """The :class:`Lens` :func:`lens_to_dict` wrote; UserError when ``d`` is not one."""
+    try:
+        lens = Lens(str(d["model"]), *(float(d[k]) for k in ("fx", "fy", "cx", "cy")),
+                    tuple(float(c) for c in d["coeffs"]), tuple(int(s) for s in d["size"]))
+    except (TypeError, ValueError, KeyError):
+        raise UserError("a camera's lens is a table with model, fx, fy, cx, cy, coeffs and size") from None
+    numbers = (lens.fx, lens.fy, lens.cx, lens.cy) + lens.coeffs
+    if (lens.model not in (RADTAN, FISHEYE) or len(lens.coeffs) != len(COEFF_NAMES) or len(lens.size) != 2
+            or not all(math.isfinite(v) for v in numbers) or min(lens.fx, lens.fy, *lens.size) <= 0):
+        raise UserError(f"a camera's lens must have model {RADTAN} or {FISHEYE}, positive finite focal lengths, "
+                        f"{len(COEFF_NAMES)} finite coefficients and a positive size, got {d!r}")
+    return lens
 
 
 def lens_from_keys(keys: dict, fx: float, fy: float, cx: float, cy: float, size, where: str) -> Lens:
@@ -106,6 +142,64 @@ def distort(lens: Lens, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.nd
     d = 1 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
     return (x * d + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
             y * d + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
+
+
+def undistort(lens: Lens, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Undistorted normalised coordinates of distorted ones (float64 arrays of one shape), and a bool
+    array of those found: Newton's method (:data:`INVERSE_STEPS`) whose :func:`distort` round trip
+    lands within :data:`INVERSE_TOL_PX` pixels, before the model folds back (and, for a fisheye, in
+    front of the camera). Points not found get their distorted coordinates, finite."""
+    k1, k2, k3, k4, p1, p2 = lens.coeffs
+    with np.errstate(all="ignore"):
+        if lens.model == FISHEYE:  # radial: solve theta_d(theta) = |(xd, yd)|
+            rd = np.hypot(xd, yd)
+            theta = np.minimum(rd, 1.5)
+            for _ in range(INVERSE_STEPS):
+                t2 = theta * theta
+                g = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)))) - rd
+                dg = 1 + t2 * (3 * k1 + t2 * (5 * k2 + t2 * (7 * k3 + t2 * 9 * k4)))
+                theta = np.clip(theta - g / dg, 0.0, math.pi / 2)
+            scale = np.where(rd > 1e-12, np.tan(theta) / np.maximum(rd, 1e-12), 1.0)
+            x, y = xd * scale, yd * scale
+            found = theta < math.pi / 2 - 1e-6
+        else:
+            x, y = xd.copy(), yd.copy()
+            for _ in range(INVERSE_STEPS):
+                r2 = x * x + y * y
+                d = 1 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
+                dp = k1 + r2 * (2 * k2 + r2 * (3 * k3 + r2 * 4 * k4))  # d(d)/d(r^2)
+                fx, fy = distort(lens, x, y)
+                ex, ey = fx - xd, fy - yd
+                a = d + 2 * x * x * dp + 2 * p1 * y + 6 * p2 * x
+                b = 2 * x * y * dp + 2 * p1 * x + 2 * p2 * y
+                c = d + 2 * y * y * dp + 6 * p1 * y + 2 * p2 * x
+                det = a * c - b * b
+                x, y = x - (c * ex - b * ey) / det, y - (a * ey - b * ex) / det
+            found = np.ones(x.shape, bool)
+        bx, by = distort(lens, x, y)
+        miss = np.hypot((bx - xd) * lens.fx, (by - yd) * lens.fy)
+        found &= np.isfinite(x) & np.isfinite(y) & (miss < INVERSE_TOL_PX)
+        r = np.hypot(x, y)
+        if found.any():  # the other preimage of a folding model shows what lies elsewhere
+            found &= r < _fold_radius(lens, float(r[found].max()) * 1.01)
+    return np.where(found, x, xd), np.where(found, y, yd), found
+
+
+@lru_cache(maxsize=2)  # frames share a lens; a 4096x4096 image's rays take 400 MB
+def pixel_rays(lens: Lens) -> tuple[np.ndarray, np.ndarray]:
+    """The rays through the pixel centres of an image of ``lens``, row-major: ``(local, valid)``,
+    (H*W, 3) float64 directions ``(x, y, 1)`` in OpenCV's camera frame (x right, y down, z forward;
+    not unit length) and (H*W,) bool, the pixels whose ray :func:`undistort` finds. Read-only."""
+    w, h = lens.size
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64) + 0.5, np.arange(h, dtype=np.float64) + 0.5)
+    xd, yd = ((u - lens.cx) / lens.fx).ravel(), ((v - lens.cy) / lens.fy).ravel()
+    if lens.distorted:
+        x, y, valid = undistort(lens, xd, yd)
+    else:
+        x, y, valid = xd, yd, np.ones(xd.shape, bool)
+    local = np.stack([x, y, np.ones_like(x)], axis=1)
+    local.flags.writeable = valid.flags.writeable = False
+    return local, valid
 
 
 def _fold_radius(lens: Lens, r_max: float) -> float:

@@ -40,6 +40,7 @@ from dataclasses import fields
 import numpy as np
 
 from .cameras import camera_rays
+from .lens import distort
 from .checks import is_whole
 from .errors import UserError
 from .field import Ensemble, FieldConfig
@@ -152,8 +153,10 @@ def seen_points(view: View, points: np.ndarray) -> np.ndarray:
     z = local[:, 2]
     k = cam.intrinsics()
     with np.errstate(divide="ignore", invalid="ignore"):
-        col = k[0, 2] - k[0, 0] * local[:, 0] / z
-        row = k[1, 2] - k[1, 1] * local[:, 1] / z
+        x, y = -local[:, 0] / z, -local[:, 1] / z  # OpenCV's normalised image coordinates
+        if cam.lens is not None:
+            x, y = distort(cam.lens, x, y)
+        col, row = k[0, 2] + k[0, 0] * x, k[1, 2] + k[1, 1] * y
     inside = (z > 0) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
     r, c = row[inside].astype(int), col[inside].astype(int)
     dist = np.linalg.norm(offset[inside], axis=1)

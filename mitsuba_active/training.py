@@ -11,10 +11,10 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from .cameras import camera_rays
+from .cameras import camera_rays, camera_valid
 from .checks import is_whole
 from .groundtruth import View
-from .metrics import distance_error, foreground_psnr, psnr, ssim
+from .metrics import dilate, distance_error, foreground_radius, masked_psnr, psnr, ssim
 
 #: Most sparse rays scored per candidate view (images have at most 4096x4096
 #: pixels; a planner scores a sample of them).
@@ -41,29 +41,40 @@ def has_distances(source) -> bool:
 
 def view_rays(views: list[View]) -> dict:
     """Flat training rays of captured views: origins, directions, rgb (M,3); distance, hit, empty (M,);
-    the background colour their empty pixels show, or None."""
+    the background colour their empty pixels show, or None. Pixels without a ray (a lens camera's,
+    :func:`~mitsuba_active.cameras.camera_valid`) are left out."""
     parts = [camera_rays(v.camera) for v in views]
-    return {
+    keep = np.concatenate([camera_valid(v.camera) for v in views])
+    rays = {
         "origins": np.concatenate([o for o, _ in parts]),
         "directions": np.concatenate([d for _, d in parts]),
         "rgb": np.concatenate([v.rgb.reshape(-1, 3) for v in views]).astype(np.float32),
         "distance": np.concatenate([v.distance.reshape(-1) for v in views]).astype(np.float32),
         "hit": np.concatenate([v.mask.reshape(-1) for v in views]),
         "empty": np.concatenate([v.empty.reshape(-1) for v in views]),
-        # The colour the empty pixels show, where the views know it (all alike; else None).
-        "background": views[0].background if len({v.background for v in views}) == 1 else None,
     }
+    if not keep.all():
+        rays = {k: a[keep] for k, a in rays.items()}
+    # The colour the empty pixels show, where the views know it (all alike; else None).
+    rays["background"] = views[0].background if len({v.background for v in views}) == 1 else None
+    return rays
 
 
 def sparse_candidate_rays(candidates, n_rays: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """A fixed random subset of R pixel rays per candidate: origins and directions, (C, R, 3) each."""
+    """A fixed random subset of R pixel rays per candidate (of the pixels that have one:
+    :func:`~mitsuba_active.cameras.camera_valid`): origins and directions, (C, R, 3) each."""
     if not is_whole(n_rays) or not 0 < n_rays <= MAX_CANDIDATE_RAYS:
         raise ValueError(f"rays per candidate must be a whole number in [1, {MAX_CANDIDATE_RAYS}], got {n_rays!r}")
     rng = np.random.default_rng(seed)
     o_all, d_all = [], []
     for cam in candidates:
         o, d = camera_rays(cam)
-        idx = rng.choice(len(o), size=n_rays, replace=n_rays > len(o))
+        valid = camera_valid(cam)
+        if valid.all():  # a pinhole's draws stay as they were
+            idx = rng.choice(len(o), size=n_rays, replace=n_rays > len(o))
+        else:
+            pixels = np.flatnonzero(valid)
+            idx = pixels[rng.choice(len(pixels), size=n_rays, replace=n_rays > len(pixels))]
         o_all.append(o[idx])
         d_all.append(d[idx])
     return np.stack(o_all), np.stack(d_all)
@@ -114,7 +125,9 @@ def score_views(field_, views: Iterable[View]) -> tuple[dict, list[dict]]:
     PSNRs of the trivial prediction, each view's :func:`background_colour`
     alone (``floor_psnr``, ``floor_psnr_fg``); None where no view can give one
     (SSIM needs 11x11 pixels, the distance error hits, the foreground PSNR
-    geometry); and each view's :func:`predict_view`.
+    geometry); and each view's :func:`predict_view`. A lens camera's pixels without a ray
+    (:func:`~mitsuba_active.cameras.camera_valid`) are left out of the scores (SSIM, over whole
+    windows, takes the ground truth there).
     """
     preds, scores = [], {k: [] for k in ("psnr", "psnr_fg", "ssim", "distance_error", "floor_psnr",
                                          "floor_psnr_fg")}
@@ -122,12 +135,15 @@ def score_views(field_, views: Iterable[View]) -> tuple[dict, list[dict]]:
         pred = predict_view(field_, gt.camera)
         preds.append(pred)
         floor = np.broadcast_to(background_colour(gt), gt.rgb.shape)
-        scores["psnr"].append(psnr(pred["rgb"], gt.rgb))
-        scores["psnr_fg"].append(foreground_psnr(pred["rgb"], gt.rgb, gt.foreground))
-        scores["ssim"].append(ssim(pred["rgb"], gt.rgb) if min(gt.rgb.shape[:2]) >= 11 else float("nan"))
-        scores["distance_error"].append(distance_error(pred["distance"], gt.distance, gt.mask))
-        scores["floor_psnr"].append(psnr(floor, gt.rgb))
-        scores["floor_psnr_fg"].append(foreground_psnr(floor, gt.rgb, gt.foreground))
+        valid = camera_valid(gt.camera).reshape(gt.rgb.shape[:2])
+        fg = dilate(gt.foreground, foreground_radius(gt.rgb.shape[1])) & valid
+        rgb = np.where(valid[..., None], pred["rgb"], gt.rgb)
+        scores["psnr"].append(psnr(pred["rgb"], gt.rgb) if valid.all() else masked_psnr(pred["rgb"], gt.rgb, valid))
+        scores["psnr_fg"].append(masked_psnr(pred["rgb"], gt.rgb, fg))
+        scores["ssim"].append(ssim(rgb, gt.rgb) if min(gt.rgb.shape[:2]) >= 11 else float("nan"))
+        scores["distance_error"].append(distance_error(pred["distance"], gt.distance, gt.mask & valid))
+        scores["floor_psnr"].append(psnr(floor, gt.rgb) if valid.all() else masked_psnr(floor, gt.rgb, valid))
+        scores["floor_psnr_fg"].append(masked_psnr(floor, gt.rgb, fg))
     return {"psnr": float(np.mean(scores.pop("psnr"))), **{k: _mean_or_none(v) for k, v in scores.items()}}, preds
 
 

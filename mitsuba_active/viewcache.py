@@ -1,9 +1,12 @@
-"""On-disk cache of a dataset's loaded views (large images decoded, undistorted and shrunk once).
+"""On-disk cache of a dataset's loaded views (large images decoded and shrunk once).
 
 A view is stored as ``.npz`` under a digest of everything it is made from:
 the image (and depth map) file's path, size and modification time, the
-crop, the downscale factor, the lens and the background. A changed file
-or setting gives a new key, so a stale entry is never read.
+crop, the downscale factor, the lens, the camera and the background. A
+changed file or setting gives a new key, so a stale entry is never read.
+Views of a lens camera are kept as captured (once they were resampled to a
+pinhole, under keys without ``rays``): their keys name that, pinholes' keys
+stay as they were.
 """
 
 from __future__ import annotations
@@ -37,6 +40,8 @@ def view_key(frame, white_background: bool) -> str:
              "downscale": frame.downscale, "size": list(frame.full_size), "white": bool(white_background),
              "lens": None if frame.lens is None else dataclasses.asdict(frame.lens),
              "camera": [frame.camera.width, frame.camera.height, frame.camera.fov]}
+    if frame.camera.lens is not None:
+        parts["rays"] = dataclasses.asdict(frame.camera.lens)
     return hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()
 
 

@@ -10,7 +10,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from mitsuba_active.cameras import MITSUBA_TO_OPENCV
+from mitsuba_active.cameras import MITSUBA_TO_OPENCV, camera_rays
 from mitsuba_active.colmap import BOUNDS_PERCENTILES
 from mitsuba_active.datasets import DatasetSource, mitsuba_to_opengl, open_source
 from mitsuba_active.errors import UserError
@@ -59,24 +59,25 @@ def write_capture(root, views, f, model, coeffs, per_frame):
 @pytest.mark.parametrize("model,coeffs,per_frame", [("OPENCV", RADTAN, False), ("OPENCV", RADTAN, True),
                                                     ("OPENCV_FISHEYE", FISHEYE, False),
                                                     ("OPENCV_FISHEYE", FISHEYE, True)])
-def test_a_distorted_capture_comes_back_as_the_clean_renders(tmp_path, renders, model, coeffs, per_frame):
+def test_a_distorted_capture_is_seen_along_its_lenss_rays(tmp_path, renders, model, coeffs, per_frame):
+    """The images stay as captured, whole; each camera carries the lens, whose rays followed into
+    the clean render find the colours the captured pixels show."""
     views, f = renders
     write_capture(tmp_path, views, f, model, coeffs, per_frame)
     src = DatasetSource.from_path(tmp_path)
     frames = src.candidate_frames + src.heldout_frames
-    assert all(fr.lens is not None and fr.lens.model == model for fr in frames)
+    assert all(fr.lens is not None and fr.lens.model == model and fr.camera.lens.model == model for fr in frames)
     gains = []
     for fr, clean in zip(frames, views):
-        x0, y0, w, h = fr.crop
-        assert w >= 0.7 * SIZE and h >= 0.7 * SIZE  # the window that sees captured pixels only
+        assert fr.crop == (0, 0, SIZE, SIZE) and np.allclose(fr.camera.to_world, clean.camera.to_world)
         got = src._view(fr).rgb
-        ref = clean.rgb[y0:y0 + h, x0:x0 + w]
-        raw = iio.imread(fr.image)[y0:y0 + h, x0:x0 + w] / 255.0
-        # The window's camera is the clean one's (same pose and focal length): its pixels match.
-        assert np.allclose(fr.camera.to_world, clean.camera.to_world)
-        hit = clean.mask[y0:y0 + h, x0:x0 + w]  # the object: the background is alike everywhere
-        assert hit.mean() > 0.1
-        good, naive = psnr(got[hit], ref[hit]), psnr(raw[hit], ref[hit])
+        assert np.allclose(got, iio.imread(fr.image) / 255.0, atol=1e-6)
+        local = camera_rays(fr.camera)[1].astype(np.float64) @ fr.camera.to_world[:3, :3]
+        x, y = -local[:, 0] / local[:, 2], -local[:, 1] / local[:, 2]  # OpenCV's frame
+        grid = [(SIZE / 2 + f * t - 0.5).reshape(SIZE, SIZE).astype(np.float32) for t in (x, y)]
+        seen = cv2.remap(clean.rgb, *grid, cv2.INTER_LINEAR)
+        hit = clean.mask  # the object: the background is alike everywhere
+        good, naive = psnr(seen[hit], got[hit]), psnr(clean.rgb[hit], got[hit])
         assert good > 26.0 and good > naive + 1.0, (good, naive)
         gains.append(good - naive)
     assert np.mean(gains) > 3.0, gains
@@ -98,20 +99,21 @@ def test_per_frame_size_focal_and_principal_point(tmp_path):
     assert src.candidate_view(0).rgb.shape == (10, 12, 3)
 
 
-def test_non_square_pixels_are_resampled(tmp_path):
-    """fl_y unlike fl_x: rows are resampled to fl_x, so a row pattern lands where the square camera sees it."""
+def test_non_square_pixels_keep_their_pixels_and_bend_the_rays(tmp_path):
+    """fl_y unlike fl_x: the image stays as captured; its rows' rays climb by 1 / fl_y per pixel."""
     img = np.zeros((32, 32, 3), np.uint8)
     img[:, :, 1] = (np.arange(32) * 8)[:, None]  # green encodes the row
-    write_dataset(tmp_path, n=3, size=(32, 32), rgba=img, extra={"fl_x": 20.0, "fl_y": 10.0})
-    src = DatasetSource.from_path(tmp_path)
-    fr = src.heldout_frames[0]
+    write_dataset(tmp_path, n=3, size=(32, 32), rgba=img, extra={"fl_x": 20.0, "fl_y": 10.0, "cy": 15.0})
+    src = DatasetSource.from_path(tmp_path, downscale=2)
+    cam = src.heldout[0]
+    assert src.heldout_frames[0].crop == (0, 0, 32, 32) and (cam.width, cam.height) == (16, 16)
+    assert (cam.lens.fx, cam.lens.fy, cam.lens.cx, cam.lens.cy) == (10.0, 5.0, 8.0, 7.5)
     v = src.heldout_view(0).rgb
-    x0, y0, w, h = fr.crop
-    rows = np.arange(h) + y0 + 0.5
-    src_rows = (rows - 16) * 10 / 20 + 16  # where each pixel's ray meets the captured image
-    lin = np.interp(src_rows - 0.5, np.arange(32), srgb_to_linear(np.arange(32) * 8 / 255.0))
-    assert np.allclose(v[:, w // 2, 1], linear_to_srgb(lin), atol=2e-3)
-    assert not np.allclose(v[:, w // 2, 1], img[y0:y0 + h, 0, 1] / 255, atol=2e-2)
+    lin = srgb_to_linear(np.arange(32) * 8 / 255.0).reshape(16, 2).mean(axis=1)  # 2x2 blocks, linear light
+    assert np.allclose(v[:, 8, 1], linear_to_srgb(lin), atol=2e-3)
+    local = camera_rays(cam)[1].astype(np.float64).reshape(16, 16, 3)[:, 8] @ cam.to_world[:3, :3]
+    rows = (np.arange(16) + 0.5) * 2  # each block's centre, in the image's pixels
+    assert np.allclose(-local[:, 1] / local[:, 2], (rows - 15.0) / 10.0, atol=1e-5)
 
 
 def test_aabb_scale_gives_instant_ngps_box_and_a_contraction(tmp_path):
@@ -233,7 +235,7 @@ def test_a_colmap_text_model_loads_with_the_renders_poses(tmp_path, renders):
     assert np.allclose(src.heldout_view(0).rgb, np.round(views[2].rgb * 255) / 255, atol=1e-5)
 
 
-def test_a_colmap_opencv_camera_is_undistorted(tmp_path, renders):
+def test_a_colmap_opencv_camera_carries_its_lens(tmp_path, renders):
     views, f = renders
     write_colmap(tmp_path / "proj", views, f, model="OPENCV",
                  params=[f, f, SIZE / 2, SIZE / 2, RADTAN["k1"], RADTAN["k2"], RADTAN["p1"], RADTAN["p2"]],
@@ -243,9 +245,10 @@ def test_a_colmap_opencv_camera_is_undistorted(tmp_path, renders):
                     np.round(np.clip(capture_through(v.rgb, f, "OPENCV", RADTAN), 0, 1) * 255).astype(np.uint8))
     src = open_source(tmp_path / "proj", n_candidates=None, n_heldout=2, downscale=1, cache_dir=False)
     fr = src.heldout_frames[0]
-    x0, y0, w, h = fr.crop
-    hit = views[2].mask[y0:y0 + h, x0:x0 + w]
-    assert fr.lens is not None and psnr(src.heldout_view(0).rgb[hit], views[2].rgb[y0:y0 + h, x0:x0 + w][hit]) > 26
+    lens = fr.camera.lens
+    assert fr.crop == (0, 0, SIZE, SIZE) and (lens.fx, lens.fy, lens.cx, lens.cy) == (f, f, SIZE / 2, SIZE / 2)
+    assert lens.coeffs == (RADTAN["k1"], RADTAN["k2"], 0.0, 0.0, RADTAN["p1"], RADTAN["p2"])
+    assert np.allclose(src.heldout_view(0).rgb, iio.imread(fr.image) / 255.0, atol=1e-6)
 
 
 def test_a_colmap_binary_model_reads_as_its_text_model(tmp_path, renders):
@@ -300,12 +303,16 @@ def test_colmap_camera_models_give_their_intrinsics_and_lens(tmp_path, renders, 
                                                                                        48.0, 47.0)
     x0, y0, w, h = fr.crop
     assert fr.camera.fov == pytest.approx(math.degrees(2 * math.atan(w / 2 / 70.0)))
-    assert (x0 + w / 2, y0 + h / 2) == (48.0, 47.0)  # the window is centred on the principal point
+    if model == "SIMPLE_PINHOLE":
+        assert (x0 + w / 2, y0 + h / 2) == (48.0, 47.0)  # the window is centred on the principal point
+    else:  # the camera carries its principal point: the image stays whole
+        assert fr.crop == (0, 0, SIZE, SIZE) and (fr.camera.lens.cx, fr.camera.lens.cy) == (48.0, 47.0)
 
 
 def test_the_export_of_a_distorted_capture_keeps_its_lens(tmp_path, renders, monkeypatch):
-    """The export's images are the undistorted views the run used (no distortion); each frame keeps
-    the source image and its lens; the export reads back with the run's split."""
+    """The export's images are the views the run used, as captured, with their cameras' lens at the
+    exported resolution; each frame keeps the source image and its lens; the export reads back with
+    the run's split and the same cameras."""
     from mitsuba_active.export import export_transforms
     from mitsuba_active.run import Run, RunConfig
 
@@ -318,7 +325,9 @@ def test_the_export_of_a_distorted_capture_keeps_its_lens(tmp_path, renders, mon
     rec = Run(src, cfg, tmp_path / "run", progress=False, log=lambda m: None).execute()
     path = export_transforms(tmp_path / "run", tmp_path / "ds")
     meta = json.loads(path.read_text())
-    assert [meta[k] for k in ("k1", "k2", "p1", "p2")] == [0.0] * 4 and meta["w"] == src.candidates[0].width
+    lens = src.candidates[0].lens
+    assert {k: meta[k] for k in RADTAN} == RADTAN and meta["w"] == src.candidates[0].width
+    assert (meta["camera_model"], meta["fl_x"], meta["cx"]) == ("OPENCV", lens.fx, lens.cx) and lens.fx == f / 4
     frames = src.candidate_frames
     for frame, fr in zip(meta["frames"], [frames[i] for i in rec["captured"]] + src.heldout_frames):
         lens = frame["source_camera"]
@@ -329,6 +338,7 @@ def test_the_export_of_a_distorted_capture_keeps_its_lens(tmp_path, renders, mon
     back = open_source(tmp_path / "ds", resolution=24, cache_dir=False)
     assert np.allclose([c.to_world for c in back.heldout], [c.to_world for c in src.heldout])
     assert back.heldout[0].fov == pytest.approx(src.heldout[0].fov, abs=1e-6)
+    assert back.heldout[0].lens == src.heldout[0].lens
     assert np.abs(back.heldout_view(0).rgb - src.heldout_view(0).rgb).max() <= 1 / 255
 
 

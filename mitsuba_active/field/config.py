@@ -184,6 +184,30 @@ class FieldConfig:
         Without it a field may paint the background as fog at the far side
         of the box, which also leaves no empty space to skip; 0 disables it.
 
+    Few-view regularisers (see :mod:`mitsuba_active.field.regularisers`)
+    -------------------------------------------------------------------
+    distortion_weight:
+        Weight of mip-NeRF 360's distortion loss (mean over the batch of
+        ``sum_ij w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 / n_samples``, with
+        the samples' distances ``m`` normalised by the ray's length in the
+        box): it gathers a ray's weight into one short stretch, against
+        floaters and fog; 0 (the default) disables it.
+    occlusion_weight:
+        Weight of FreeNeRF's occlusion penalty (mean over the batch of the
+        optical depth of each ray's first samples in the box): density
+        right in front of the training cameras is what few views fit with
+        floaters; 0 (the default) disables it.
+    occlusion_fraction:
+        The leading fraction of a ray's samples (of its length in the box)
+        that the occlusion penalty covers (at least one sample), in (0, 1].
+    random_background:
+        1: at each step, the rays known empty of views whose background
+        colour is known (a dataset's transparent pixels, ``set_rays(...,
+        empty=, background=)``) show a random colour per ray, as target and
+        as the prediction's background (Instant-NGP's trick): the volume
+        cannot paint the background in, only stay empty there. Other rays
+        keep the learnt background. 0 (the default): off.
+
     View dependence (see :mod:`mitsuba_active.field.view`)
     ------------------------------------------------------
     view_degree:
@@ -230,6 +254,10 @@ class FieldConfig:
     epsilon: float = 1e-8
     distance_weight: float = 0.0
     empty_weight: float = 0.0
+    distortion_weight: float = 0.0
+    occlusion_weight: float = 0.0
+    occlusion_fraction: float = 0.1
+    random_background: int = 0
     view_degree: int = 0
     view_resolution: int = 8
     occupancy_resolution: int = 0
@@ -252,7 +280,8 @@ class FieldConfig:
         # Ranges where training means what the option says (a negative rate
         # would climb the loss without any error).
         positive = ("per_level_scale", "lr", "epsilon")
-        non_negative = ("init_scale", "bbox_padding", "near", "lr_background", "distance_weight", "empty_weight")
+        non_negative = ("init_scale", "bbox_padding", "near", "lr_background", "distance_weight", "empty_weight",
+                        "distortion_weight", "occlusion_weight")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise UserError(f"FieldConfig.{name} must be > 0, got {getattr(self, name)}")
@@ -292,6 +321,10 @@ class FieldConfig:
                                 f"samples per batch, more than {MAX_BATCH_SAMPLES}")
         if not 0 <= int(self.view_degree) <= 2 or not 1 <= int(self.view_resolution) <= 256:
             raise UserError("FieldConfig.view_degree must be in [0, 2] (0: diffuse) and view_resolution in [1, 256]")
+        if not 0 < self.occlusion_fraction <= 1:
+            raise UserError(f"FieldConfig.occlusion_fraction must be in (0, 1], got {self.occlusion_fraction}")
+        if self.random_background not in (0, 1):
+            raise UserError(f"FieldConfig.random_background must be 0 (off) or 1, got {self.random_background}")
         if not 0 <= int(self.occupancy_resolution) <= 256:
             raise UserError("FieldConfig.occupancy_resolution must be in [0, 256] (0: off)")
         if not self.occupancy_threshold > 0 or int(self.occupancy_interval) < 1 \

@@ -27,6 +27,7 @@ from ..variant import require_variant
 from .config import MAX_MEMBERS, MAX_STEPS, FieldConfig
 from .grid import GridLayout, init_grid
 from .occupancy import DECAY, cell_opacity
+from .regularisers import ray_regularisers
 from .render import FieldParams, hash_u32, render_flat, render_members, uniform_from_u32
 from .view import n_coefficients, view_layout
 
@@ -142,6 +143,7 @@ class Ensemble:
         self._step = 0
         self._n_rays = 0
         self._rays = None
+        self._known_background = False  # set_rays was told the empty rays' colour
         self._reset_occupancy()
 
     # ------------------------------------------------------------------ state
@@ -301,6 +303,7 @@ class Ensemble:
                 raise UserError(f"set_rays: background must be 3 numbers in [0, 1], got {background!r}")
             if self._step == 0:
                 self._start_background(bg)
+        self._known_background = background is not None
         self._rays = dict(o=mi.Point3f(o.T), d=mi.Vector3f(d.T), rgb=mi.Color3f(c.T),
                           distance=mi.Float(dist), hit=mi.Bool(h), empty=mi.Bool(e))
         dr.eval(self._rays)
@@ -385,7 +388,10 @@ class Ensemble:
         o = dr.gather(mi.Point3f, R["o"], idx)
         d = dr.gather(mi.Vector3f, R["d"], idx)
         target = dr.gather(mi.Color3f, R["rgb"], idx)
-        outs, regulariser = self._training_outputs(o, d, jitter)
+        reg = ray_regularisers(cfg)
+        outs, regulariser = self._training_outputs(o, d, jitter, reg)
+        if cfg.random_background and self._known_background:
+            target, outs = self._random_background(idx, target, outs)
         # Sum of the members' mean losses: each member gets the gradient
         # it would get if trained alone.
         sq = 0.0
@@ -393,6 +399,8 @@ class Ensemble:
             sq = sq + dr.squared_norm(out["rgb"] - target)
         mse = dr.sum(sq) * (1.0 / (N * 3))
         loss = mse + regulariser
+        if reg is not None:
+            loss = loss + 1.0 / N * dr.sum(sum(out["regulariser"] for out in outs))
         dw, ew = float(cfg.distance_weight), float(cfg.empty_weight)
         if ew > 0:
             # Rays that meet nothing should see the background colour, not
@@ -412,9 +420,31 @@ class Ensemble:
             loss = loss + dw * inv_diag2 / N * dr.sum(dsq)
         return mse, loss
 
-    def _training_outputs(self, o, d, jitter):
-        """Renders of a training batch (one per member) and a loss term added to theirs (none here)."""
-        return render_members(self.params(), o, d, jitter), 0.0
+    def _training_outputs(self, o, d, jitter, reg=None):
+        """Renders of a training batch (one per member; with ``reg``, see
+        :func:`.regularisers.ray_regularisers`, each has its ``regulariser``)
+        and a loss term added to theirs (none here)."""
+        return render_members(self.params(), o, d, jitter, reg=reg), 0.0
+
+    def _random_background(self, idx, target, outs):
+        """The batch's targets and renders with a random colour per ray as the
+        background of its rays known empty (``FieldConfig.random_background``).
+
+        Each render is ``C + (1 - opacity) bg``; adding ``(1 - opacity)
+        (random - bg)`` swaps the background without another render, and the
+        learnt background gets no gradient from those rays."""
+        empty = dr.gather(mi.Bool, self._rays["empty"], idx)
+        key = dr.opaque(mi.UInt32, (self.seed * 0x2C1B3C6D + self._step * 0x297A2D39 + 7) & 0xFFFFFFFF)
+        i = dr.arange(mi.UInt32, dr.width(idx)) * 3
+        colour = mi.Color3f(*[uniform_from_u32(hash_u32(hash_u32(i + c) ^ key)) for c in range(3)])
+        bgs = self._opt["background"]
+        swapped = []
+        for k, out in enumerate(outs):
+            logits = dr.gather(mi.Vector3f, bgs, dr.zeros(mi.UInt32, dr.width(idx)) + k)
+            bg = mi.Color3f(*[dr.rcp(1.0 + dr.exp(-logits[c])) for c in range(3)])
+            rgb = out["rgb"] + dr.select(empty, (1.0 - out["opacity"]) * (colour - bg), 0.0)
+            swapped.append({**out, "rgb": rgb})
+        return dr.select(empty, colour, target), swapped
 
     def optimizer_step(self):
         """Apply one Adam update from the accumulated gradients (and refresh
@@ -461,7 +491,8 @@ class Ensemble:
                 if bar is not None:
                     bar.close()
                 # Large loss weights diverge as a large learning rate does: name those set.
-                weights = [f"{n} = {getattr(self.config, n):g}" for n in ("distance_weight", "empty_weight")
+                weights = [f"{n} = {getattr(self.config, n):g}" for n in ("distance_weight", "empty_weight",
+                                                                           "distortion_weight", "occlusion_weight")
                            if getattr(self.config, n) > 0]
                 lower = "FieldConfig.lr" + (f" or the loss weights ({', '.join(weights)})" if weights else "")
                 raise TrainingDiverged(f"training diverged at step {self._step} (loss {value}); lower {lower} "

@@ -31,6 +31,7 @@ import numpy as np
 from ..errors import UserError
 from .grid import GridLayout, accumulate, query
 from .occupancy import occupied
+from .regularisers import blocked_regulariser
 from .view import view_residual
 
 
@@ -292,11 +293,21 @@ def composite(tau, rgb_s, t, S: int):
 
 class _MarchedComposite(dr.CustomOp):
     """:func:`composite_marched` with its derivatives (see there), for a
-    tuple of members' raw features marched side by side."""
+    tuple of members' raw features marched side by side.
 
-    def eval(self, raws, t, delta, valid, S, density_bias, inv_diag):
+    With regularisers ``reg`` (see :mod:`.regularisers`) each member has a
+    fourth output, their weighted sum per ray. Their derivatives fit the
+    compositing's closed form: the distortion's derivative with respect to
+    the weight ``w_i`` is ``u_i = 2 sum_j w_j |m_i - m_j| + 2/3 w_i / S``,
+    from the running sums before ``i`` and the totals (opacity, distance
+    sum), and joins ``s_i`` below; the occlusion adds a constant to the
+    derivative of the leading samples' optical depth.
+    """
+
+    def eval(self, raws, t, delta, valid, S, density_bias, inv_diag, reg=None):
         self.t, self.valid, self.S, self.K = t, valid, S, len(raws)
         self.density_bias, self.inv_diag = density_bias, inv_diag
+        self.reg = reg
         # Several members' features of a sample side by side (K*4 floats):
         # the loop reads them with one packet load per ray instead of K*4
         # strided gathers. One member's 4 are read faster as they are (the
@@ -317,12 +328,33 @@ class _MarchedComposite(dr.CustomOp):
         self.first = dr.arange(mi.UInt32, n // S) * S  # each ray's first sample
         self.delta = dr.gather(mi.Float, delta, self.first)
         self.per_ray = dr.width(valid) == dr.width(self.first)
+        # The distortion's distances are normalised by the ray's length in the box.
+        self.inv_length = dr.select(self.delta > 0, dr.rcp(self.delta * S), 0.0)
         out, _ = self._march()
         # Evaluated here so that the derivative passes read the outputs
         # instead of marching the rays again.
         dr.eval(out)
         self.out = out
-        return out
+        if reg is None:
+            return out
+        dw, ow, _ = reg
+        return tuple((rgb, dsum, opac, dw * dist + ow * occ) for rgb, dsum, opac, dist, occ in out)
+
+    def _distortion(self, w, t_i, p_dsum, p_opac):
+        """A sample's share of the distortion loss (weight ``w`` at ``t_i``,
+        the distance and opacity sums before it ``p_dsum``, ``p_opac``)."""
+        return w * dr.fma(2.0 * self.inv_length, dr.fma(t_i, p_opac, -p_dsum), w * (1.0 / (3 * self.S)))
+
+    def _distortion_slope(self, k, w, t_i, p_dsum, p_opac):
+        """``u_i``: the distortion's derivative with respect to the weight of
+        a sample of member ``k`` (arguments as for :meth:`_distortion`)."""
+        _, dsum, opac = self.out[k][:3]
+        inner = dr.fma(t_i, dr.fma(2.0, p_opac, -opac), dr.fma(-2.0, p_dsum, dsum))
+        return dr.fma(2.0 * self.inv_length, inner, w * (2.0 / (3 * self.S)))
+
+    def _leading(self, i):
+        """Whether step ``i`` of the march is among the samples the occlusion penalty covers."""
+        return i < self.reg[2]
 
     def _sample(self, i):
         """What the loop reads at step ``i`` of every ray: the sample index
@@ -347,28 +379,35 @@ class _MarchedComposite(dr.CustomOp):
 
     def _march(self, visit=None, acc=()):
         """March every ray through its samples, all members in one loop:
-        returns the members' final (rgb, dsum, opac) and ``acc``. After
-        :meth:`eval`, ``acc = visit(k, j, sigma, c, t_i, live, w, trans_after,
-        rest, acc)`` is called at each sample ``j`` of each member ``k``, where
-        ``rest`` is what the samples behind it contribute to (rgb, dsum,
-        opac): the outputs minus the running sums up to and including this
-        sample; ``acc`` is loop state (per ray)."""
+        returns the members' final (rgb, dsum, opac[, distortion, occlusion])
+        and ``acc``. After :meth:`eval`, ``acc = visit(k, i, j, sigma, c, t_i,
+        live, w, trans_after, before, rest, acc)`` is called at step ``i``
+        (sample ``j``) of each member ``k``, where ``before`` holds the
+        (dsum, opac) sums before this sample and ``rest`` is what the samples
+        behind it contribute to (rgb, dsum, opac): the outputs minus the
+        running sums up to and including this sample; ``acc`` is loop state
+        (per ray)."""
         z = dr.zeros(mi.Float, dr.width(self.delta))
 
         def step(i, sums, acc):
             j, valid, t_i, raws = self._sample(i)
             marched = []
-            for k, (raw, (trans, p_rgb, p_dsum, p_opac)) in enumerate(zip(raws, sums)):
+            for k, (raw, state) in enumerate(zip(raws, sums)):
+                trans, p_rgb, p_dsum, p_opac = state[:4]
                 sigma, c, live, w, trans_after = self._alpha(raw, valid, trans)
-                p_rgb, p_dsum, p_opac = dr.fma(c, w, p_rgb), dr.fma(w, t_i, p_dsum), p_opac + w
+                new = [trans_after, dr.fma(c, w, p_rgb), dr.fma(w, t_i, p_dsum), p_opac + w]
+                if self.reg is not None:
+                    new += [state[4] + self._distortion(w, t_i, p_dsum, p_opac),
+                            state[5] + dr.select(self._leading(i), sigma * self.delta, 0.0)]
                 if visit is not None:
                     out = self.out[k]
-                    rest = (out[0] - p_rgb, out[1] - p_dsum, out[2] - p_opac)
-                    acc = visit(k, j, sigma, c, t_i, live, w, trans_after, rest, acc)
-                marched.append((trans_after, p_rgb, p_dsum, p_opac))
+                    rest = (out[0] - new[1], out[1] - new[2], out[2] - new[3])
+                    acc = visit(k, i, j, sigma, c, t_i, live, w, trans_after, (p_dsum, p_opac), rest, acc)
+                marched.append(tuple(new))
             return i + 1, tuple(marched), acc
 
-        start = tuple((z + 1.0, mi.Color3f(z), mi.Float(z), mi.Float(z)) for _ in range(self.K))
+        extra = () if self.reg is None else (mi.Float(z), mi.Float(z))
+        start = tuple((z + 1.0, mi.Color3f(z), mi.Float(z), mi.Float(z)) + extra for _ in range(self.K))
         _, sums, acc = dr.while_loop((mi.UInt32(0), start, acc), lambda i, *_: i < self.S, step)
         return tuple(member[1:] for member in sums), acc
 
@@ -382,27 +421,44 @@ class _MarchedComposite(dr.CustomOp):
         ``i`` is ``<g, O>`` minus the running sum up to ``i``, so each member
         carries two scalars through the loop (transmittance and that sum).
         ``d<g, O>/d colour_i = w_i g_rgb``.
+
+        With regularisers, the distortion's ``g dw u_i`` joins ``s_i`` (its
+        ``sum_i w_i u_i`` is twice the distortion) and each member carries
+        its (dsum, opac) running sums too; the occlusion's ``g ow`` is added
+        to ``d/d tau_i`` of the leading samples.
         """
         g_out = self.grad_out()
         total = [dr.dot(g[0], out[0]) + g[1] * out[1] + g[2] * out[2] for g, out in zip(g_out, self.out)]
+        if self.reg is not None:
+            dw, ow, _ = self.reg
+            total = [tot + 2.0 * dw * g[3] * out[3] for tot, g, out in zip(total, g_out, self.out)]
 
         def step(i, state):
             j, valid, t_i, raws = self._sample(i)
             grads, marched = [], []
-            for k, (raw, (trans, before)) in enumerate(zip(raws, state)):
-                g_rgb, g_dsum, g_opac = g_out[k]
+            for k, (raw, member) in enumerate(zip(raws, state)):
+                trans, before = member[:2]
+                g_rgb, g_dsum, g_opac = g_out[k][:3]
                 sigma, c, live, w, trans_after = self._alpha(raw, valid, trans)
                 s_i = dr.dot(g_rgb, c) + dr.fma(g_dsum, t_i, g_opac)
+                if self.reg is not None:
+                    p_dsum, p_opac = member[2:]
+                    s_i = dr.fma(dw * g_out[k][3], self._distortion_slope(k, w, t_i, p_dsum, p_opac), s_i)
                 before = dr.fma(w, s_i, before)
                 g_tau = dr.fma(trans_after, s_i, before - total[k])
+                if self.reg is not None:
+                    g_tau = g_tau + dr.select(self._leading(i), ow * g_out[k][3], 0.0)
+                    marched.append((trans_after, before, dr.fma(w, t_i, p_dsum), p_opac + w))
+                else:
+                    marched.append((trans_after, before))
                 grads.append(dr.select(live, g_tau * self.delta * sigma, 0.0))
                 grads += [g_rgb[ch] * w * c[ch] * (1.0 - c[ch]) for ch in range(3)]
-                marched.append((trans_after, before))
             self._write_gradients(j, grads, valid)
             return i + 1, tuple(marched)
 
         z = dr.zeros(mi.Float, dr.width(self.delta))
-        dr.while_loop((mi.UInt32(0), tuple((z + 1.0, mi.Float(z)) for _ in range(self.K))),
+        extra = () if self.reg is None else (mi.Float(z), mi.Float(z))
+        dr.while_loop((mi.UInt32(0), tuple((z + 1.0, mi.Float(z)) + extra for _ in range(self.K))),
                       lambda i, _: i < self.S, step)
 
     def _write_gradients(self, j, grads, valid):
@@ -420,19 +476,30 @@ class _MarchedComposite(dr.CustomOp):
     def _march_tangents(self, d_raws):
         """Forward-mode derivatives of the outputs along the members' raw
         feature tangents ``d_raws`` (one ``mi.Vector4f`` per member)."""
-        def visit(k, j, sigma, c, t_i, live, w, trans_after, rest, acc):
+        def visit(k, i, j, sigma, c, t_i, live, w, trans_after, before, rest, acc):
             d = dr.gather(mi.Vector4f, d_raws[k], j)
             d_tau = dr.select(live, d[0] * self.delta * sigma, 0.0)
             d_c = mi.Color3f(*[d[ch + 1] * c[ch] * (1.0 - c[ch]) for ch in range(3)])
-            d_rgb, d_dsum, d_opac = acc[k]
+            d_rgb, d_dsum, d_opac = acc[k][:3]
             member = (d_rgb + d_tau * dr.fma(c, trans_after, -rest[0]) + w * d_c,
                       d_dsum + d_tau * dr.fma(t_i, trans_after, -rest[1]),
                       d_opac + d_tau * (trans_after - rest[2]))
+            if self.reg is not None:
+                # The distortion's tangent: sum_i d_tau_i (T_(i+1) u_i - sum_(j>i) w_j u_j).
+                dw, ow, _ = self.reg
+                d_reg, wu = acc[k][3:]
+                u = self._distortion_slope(k, w, t_i, *before)
+                wu = dr.fma(w, u, wu)
+                rest_u = 2.0 * self.out[k][3] - wu
+                slope = dw * dr.fma(trans_after, u, -rest_u) + dr.select(self._leading(i), ow, 0.0)
+                member += (dr.fma(d_tau, slope, d_reg), wu)
             return acc[:k] + (member,) + acc[k + 1:]
 
         z = dr.zeros(mi.Float, dr.width(self.delta))
-        start = tuple((mi.Color3f(z), mi.Float(z), mi.Float(z)) for _ in range(self.K))
-        self.set_grad_out(self._march(visit, start)[1])
+        extra = () if self.reg is None else (mi.Float(z), mi.Float(z))
+        start = tuple((mi.Color3f(z), mi.Float(z), mi.Float(z)) + extra for _ in range(self.K))
+        tangents = self._march(visit, start)[1]
+        self.set_grad_out(tuple(member[:3] + member[3:4] for member in tangents))
 
     def forward(self):
         self._march_tangents(self.grad_in("raws"))
@@ -451,10 +518,10 @@ class _MarchedGrid(_MarchedComposite):
     writing and reading K*4 floats a sample and tracing the corners twice.
     """
 
-    def eval(self, grid, raws, lookup, t, delta, valid, S, density_bias, inv_diag):
+    def eval(self, grid, raws, lookup, t, delta, valid, S, density_bias, inv_diag, reg=None):
         # lookup: (layout, n_members, u, member, active), the arguments the features were queried with.
         self.grid_width, self.lookup = dr.width(grid), lookup
-        return super().eval(raws, t, delta, valid, S, density_bias, inv_diag)
+        return super().eval(raws, t, delta, valid, S, density_bias, inv_diag, reg)
 
     def _write_gradients(self, j, grads, valid):
         layout, n_members, u, member, _ = self.lookup
@@ -476,7 +543,7 @@ class _MarchedGrid(_MarchedComposite):
         return "composite_marched_grid"
 
 
-def composite_marched(raw, t, delta, valid, S: int, density_bias: float, inv_diag: float):
+def composite_marched(raw, t, delta, valid, S: int, density_bias: float, inv_diag: float, reg=None):
     """Alpha-composite blocks of S samples from their raw features, one ray
     per lane, without per-sample intermediates.
 
@@ -499,14 +566,17 @@ def composite_marched(raw, t, delta, valid, S: int, density_bias: float, inv_dia
             read at each ray's first sample), not differentiated;
         valid: ``mi.Bool`` per sample (R*S), or per ray (R) where all of a
             ray's samples share it; invalid samples (outside the box,
-            skipped) have no density.
+            skipped) have no density;
+        reg: the regularisers' (distortion weight, occlusion weight,
+            occlusion samples), see :mod:`.regularisers`, or None.
     Returns:
         (rgb ``mi.Color3f``, distance sum ``sum w t``, opacity ``sum w``),
-        each of length R, as :func:`composite` returns them; for a list,
-        a list of such tuples, one per member.
+        each of length R, as :func:`composite` returns them, and with
+        ``reg`` the regularisers' weighted sum per ray; for a list, a list
+        of such tuples, one per member.
     """
     raws = tuple(raw) if isinstance(raw, (list, tuple)) else (raw,)
-    out = dr.custom(_MarchedComposite, raws, t, delta, valid, int(S), float(density_bias), float(inv_diag))
+    out = dr.custom(_MarchedComposite, raws, t, delta, valid, int(S), float(density_bias), float(inv_diag), reg)
     return list(out) if isinstance(raw, (list, tuple)) else out[0]
 
 
@@ -562,30 +632,31 @@ def _marched_valid(params: FieldParams, s: dict):
     return s["valid"] if params.occupancy is not None else s["ray_valid"]
 
 
-def _composited(params: FieldParams, s: dict, raws: list, members: list, return_weights=False) -> list:
+def _composited(params: FieldParams, s: dict, raws: list, members: list, return_weights=False, reg=None) -> list:
     """Composite the raw features of the members ``members`` (one ``raws``
     each, evaluated or not): marched together, or one by one with the blocked
     reductions; returns one render_flat dict per member."""
     S = int(params.n_samples)
     if _marching(s, return_weights):
         sums = composite_marched(raws, s["t"], s["delta"], _marched_valid(params, s), S, params.density_bias,
-                                 1.0 / params.diag)
-        sums = [(rgb, dsum, opac, None) for rgb, dsum, opac in sums]
+                                 1.0 / params.diag, reg)
+        sums = [(*member[:3], None, member[3] if reg else None) for member in sums]
     else:
         sums = []
         for raw, member in zip(raws, members):
             sigma, rgb_s = field_at(params, s["u"], member, s["valid"], raw=raw)
-            w, rgb, dsum, opac = composite(sigma * s["delta"], rgb_s, s["t"], S)
-            sums.append((rgb, dsum, opac, w))
+            tau = sigma * s["delta"]
+            w, rgb, dsum, opac = composite(tau, rgb_s, s["t"], S)
+            sums.append((rgb, dsum, opac, w, blocked_regulariser(w, tau, s["t"], s["delta"], S, reg) if reg else None))
     return _over_background(params, s, sums, members, return_weights)
 
 
 def _over_background(params: FieldParams, s: dict, sums: list, members: list, return_weights: bool) -> list:
     """render_flat dicts of the members ``members`` from their composited
-    (rgb, distance sum, opacity, weights or None) of the samples ``s``, with
-    the view-dependent colour where the field has it."""
+    (rgb, distance sum, opacity, weights or None, regularisers or None) of
+    the samples ``s``, with the view-dependent colour where the field has it."""
     outs = []
-    for member, (rgb, dsum, opac, w) in zip(members, sums):
+    for member, (rgb, dsum, opac, w, reg) in zip(members, sums):
         # One background index per ray: the gradient of a background read once and
         # broadcast to every ray would take a reduction kernel per channel and member.
         bg = dr.gather(mi.Vector3f, params.background, dr.zeros(mi.UInt32, dr.width(opac)) + mi.UInt32(member))
@@ -599,6 +670,8 @@ def _over_background(params: FieldParams, s: dict, sums: list, members: list, re
         out = dict(rgb=rgb, distance=distance, opacity=opac)
         if return_weights:
             out["weights"] = w
+        if reg is not None:
+            out["regulariser"] = reg
         outs.append(out)
     return outs
 
@@ -611,17 +684,17 @@ def _view_colour(params: FieldParams, s: dict, distance, member):
     return view_residual(params.view, params.view_resolution, params.view_degree, params.n_members, u, d, member)
 
 
-def _rendered(params: FieldParams, s: dict, member, members: list, return_weights=False) -> list:
+def _rendered(params: FieldParams, s: dict, member, members: list, return_weights=False, reg=None) -> list:
     """Look up and composite the samples ``s``: ``member`` as for
     :func:`lookup_samples` (None: every member), ``members`` the member of
-    each output (see render_flat)."""
+    each output (see render_flat), ``reg`` as for :func:`composite_marched`."""
     if not _marching(s, return_weights):
         raws = lookup_samples(params, s, member)
         raws = raws if member is None else [raws]
         # Evaluated once, in one kernel: otherwise every blocked reduction and every
         # backward kernel would re-trace and re-run the 8 * n_levels gathers.
         dr.eval(raws, s["t"], s["delta"])
-        return _composited(params, s, raws, members, return_weights)
+        return _composited(params, s, raws, members, return_weights, reg)
     # The samples first, in a kernel of their own: the lookups' kernel and the
     # backward march read them instead of each clipping and jittering the rays
     # again (measured: a training step 8 % faster with one member, 14 % with four).
@@ -631,12 +704,12 @@ def _rendered(params: FieldParams, s: dict, member, members: list, return_weight
     raws = tuple(raws) if member is None else (raws,)
     lookup = (params.layout, params.n_members, s["u"], member, s["valid"])
     sums = dr.custom(_MarchedGrid, params.grid, raws, lookup, s["t"], s["delta"], _marched_valid(params, s),
-                     int(params.n_samples), float(params.density_bias), 1.0 / params.diag)
-    return _over_background(params, s, [(rgb, dsum, opac, None) for rgb, dsum, opac in sums], members,
+                     int(params.n_samples), float(params.density_bias), 1.0 / params.diag, reg)
+    return _over_background(params, s, [(*m[:3], None, m[3] if reg else None) for m in sums], members,
                             return_weights)
 
 
-def render_flat(params: FieldParams, o, d, member, jitter=None, return_weights=False):
+def render_flat(params: FieldParams, o, d, member, jitter=None, return_weights=False, reg=None):
     """Render R rays, ray ``r`` with member ``member[r]`` (or one int member).
 
     Args:
@@ -648,15 +721,17 @@ def render_flat(params: FieldParams, o, d, member, jitter=None, return_weights=F
         ``distance`` (Float, expected distance of the hit,
         ``sum w t / max(sum w, 1e-6)``: given a hit, so faint density gives
         its depth too; 0 where the ray misses the box), ``opacity`` (Float),
-        and ``weights`` (Float, R*S) if ``return_weights``.
+        ``weights`` (Float, R*S) if ``return_weights``, and with ``reg``
+        (see :func:`.regularisers.ray_regularisers`) ``regulariser`` (Float, R),
+        the regularisers' weighted sum per ray.
     """
     s = sample_along_rays(o, d, params, jitter)
     mem = mi.UInt32(member)
     m = dr.gather(mi.UInt32, mem, s["ray"]) if dr.width(mem) > 1 else mem
-    return _rendered(params, s, m, [mem], return_weights)[0]
+    return _rendered(params, s, m, [mem], return_weights, reg)[0]
 
 
-def render_members(params: FieldParams, o, d, jitter=None, return_weights=False):
+def render_members(params: FieldParams, o, d, jitter=None, return_weights=False, reg=None):
     """Render R rays with *every* member, sharing samples and lookups.
 
     The corner indices and weights are computed once per sample and one
@@ -667,7 +742,7 @@ def render_members(params: FieldParams, o, d, jitter=None, return_weights=False)
         list of K dicts as returned by :func:`render_flat`.
     """
     s = sample_along_rays(o, d, params, jitter)
-    return _rendered(params, s, None, list(range(params.n_members)), return_weights)
+    return _rendered(params, s, None, list(range(params.n_members)), return_weights, reg)
 
 
 def render_rays_dr(field, o, d, member=0):

@@ -129,12 +129,12 @@ class VariationalField(Ensemble):
         index = dr.arange(mi.UInt32, dr.width(s["t"])) + first
         return mean, math.log(self.max_std) + _log_sigmoid(scale), index
 
-    def _training_outputs(self, o, d, jitter):
+    def _training_outputs(self, o, d, jitter, reg=None):
         params = self.params()
         s = sample_along_rays(o, d, params, jitter)
         mean, log_std, index = self._lookup(params, s)
         key = dr.opaque(mi.UInt32, (self.seed * 0x27D4EB2F + self._step * 0x165667B1) & 0xFFFFFFFF)
-        out = _composited(params, s, [mean + dr.exp(log_std) * standard_normal4(index, key)], [0])[0]
+        out = _composited(params, s, [mean + dr.exp(log_std) * standard_normal4(index, key)], [0], reg=reg)[0]
         # Entropy of the Gaussian, up to a constant: the log-std summed over the
         # channels of the batch's samples inside the box, per channel and sample.
         entropy = dr.sum(dr.select(s["valid"], dr.sum(log_std), 0.0)) * (1.0 / (4 * dr.width(s["t"])))

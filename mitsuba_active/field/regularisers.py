@@ -1,0 +1,64 @@
+"""Few-view regularisers of a training render: distortion, near-camera occlusion, random backgrounds.
+
+Per ray of S samples with weights ``w_i``, distances ``t_i`` (sorted) and
+optical depths ``tau_i``:
+
+* the distortion loss of mip-NeRF 360, over distances normalised by the
+  ray's length in the box ``L = S * delta`` (``m_i = t_i / L``, bins of
+  ``1 / S``): ``sum_ij w_i w_j |m_i - m_j| + 1/3 sum_i w_i^2 / S``, in O(S)
+  as ``sum_i w_i (2 (m_i W_i - X_i) + w_i / (3 S))`` with the exclusive
+  running sums ``W_i = sum_(j<i) w_j`` and ``X_i = sum_(j<i) w_j m_j``;
+  it pulls a ray's weight together into one short stretch (no floaters,
+  no fog spread along the ray);
+* FreeNeRF's occlusion penalty: the optical depth of the ray's first
+  ``M`` samples in the box, ``sum_(i<M) tau_i`` (density there, in front of
+  every training camera, is what few views fit with floaters).
+
+The marched compositing (:class:`.render._MarchedComposite`) computes their
+weighted sum as a fourth output with closed-form derivatives;
+:func:`blocked_regulariser` is the same from the blocked reductions' weights.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+
+
+def ray_regularisers(config) -> tuple | None:
+    """The regularisers a :class:`.FieldConfig` asks of its training renders:
+    (distortion weight, occlusion weight, occlusion samples ``M``), or None
+    when both weights are 0."""
+    dw, ow = float(config.distortion_weight), float(config.occlusion_weight)
+    if dw == 0 and ow == 0:
+        return None
+    return dw, ow, occlusion_samples(config)
+
+
+def occlusion_samples(config) -> int:
+    """``M``: the leading samples of a ray that the occlusion penalty covers
+    (``occlusion_fraction`` of ``n_samples``, at least 1)."""
+    return max(1, int(round(float(config.occlusion_fraction) * int(config.n_samples))))
+
+
+def blocked_regulariser(w, tau, t, delta, S: int, reg: tuple):
+    """The weighted regularisers of blocks of S samples (see the module docstring).
+
+    Args:
+        w, tau, t, delta: per-sample weight, optical depth, distance and bin
+            length (``mi.Float``, R*S; differentiable).
+        reg: as :func:`ray_regularisers` gives it.
+    Returns:
+        ``mi.Float`` (R): ``dw * distortion + ow * occlusion`` per ray.
+    """
+    dw, ow, M = reg
+    k = dr.arange(mi.UInt32, dr.width(w))
+    k = k - (k // S) * S  # each sample's index along its ray
+    inv_length = dr.select(delta > 0, dr.rcp(delta * S), 0.0)
+    m = t * inv_length
+    before_w = dr.block_prefix_sum(w, S)  # exclusive
+    before_x = dr.block_prefix_sum(w * m, S)
+    per = dw * w * (2.0 * (m * before_w - before_x) + w * (1.0 / (3 * S)))
+    per = per + ow * dr.select(k < M, tau, 0.0)
+    return dr.block_sum(per, S)

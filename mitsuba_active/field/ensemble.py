@@ -26,6 +26,7 @@ from ..errors import TrainingDiverged, UserError
 from ..variant import require_variant
 from .config import MAX_MEMBERS, MAX_STEPS, FieldConfig
 from .grid import GridLayout, init_grid
+from .lazy_adam import LazyAdam
 from .occupancy import DECAY, cell_opacity
 from .render import FieldParams, hash_u32, render_flat, render_members, uniform_from_u32
 from .view import n_coefficients, view_layout
@@ -151,15 +152,18 @@ class Ensemble:
         return grid
 
     def _make_optimizer(self, grid, bg, adam_state=None, view=None):
-        """Adam over the grid table (K, E, 4), the backgrounds (K, 3) and, with
-        ``view_degree``, the view-dependent colour's table (flat, as
-        :meth:`view_numpy` gives it; None: zeros); ``adam_state`` as saved."""
+        """Adam over the grid table (K, E, 4) (:class:`.lazy_adam.LazyAdam`), the
+        backgrounds (K, 3) and, with ``view_degree``, the view-dependent colour's
+        table (flat, as :meth:`view_numpy` gives it; None: zeros) (``drjit.opt.Adam``);
+        ``adam_state`` as saved: ``{key: (t, m, v)}``."""
         cfg = self.config
         self._opt = dr.opt.Adam(lr=cfg.lr, beta_1=cfg.beta_1, beta_2=cfg.beta_2,
                                 epsilon=cfg.epsilon)
         # (K, E, 4) member-major on the host -> (E, K, 4) interleaved table.
         table = np.ascontiguousarray(np.transpose(np.asarray(grid, np.float32), (1, 0, 2)))
-        self._opt["grid"] = mi.Float(table.ravel())
+        t, m, v = (adam_state or {}).get("grid", (0, None, None))
+        self._grid_opt = LazyAdam(table.ravel(), self.layout, self.n_members, cfg.lr, cfg.beta_1, cfg.beta_2,
+                                  cfg.epsilon, m, v, t)
         self._opt["background"] = mi.Float(np.ascontiguousarray(bg, np.float32).ravel())
         if cfg.view_degree > 0:  # a diffuse start: the residual is 0 until views ask for it
             self._opt["view"] = mi.Float(np.zeros(self.view_size, np.float32) if view is None else
@@ -167,6 +171,8 @@ class Ensemble:
         self._opt.set_learning_rate({"background": cfg.lr_background})
         if adam_state is not None:
             for key, (t, m, v) in adam_state.items():
+                if key == "grid":
+                    continue
                 value, promoted, lr, _ = self._opt.state[key]
                 self._opt.state[key] = (value, promoted, lr,
                                         (mi.UInt32(int(t)), mi.Float(m), mi.Float(v), None))
@@ -182,14 +188,34 @@ class Ensemble:
         """Current parameters as a :class:`FieldParams` (Dr.Jit arrays)."""
         self._check_variant()
         cfg = self.config
-        return FieldParams(grid=self._opt["grid"], background=self._opt["background"],
+        return FieldParams(grid=self._grid_opt.param(), background=self._opt["background"],
                            layout=self.layout, box_min=self.box_min, box_max=self.box_max,
                            n_samples=int(cfg.n_samples),
                            density_bias=float(cfg.density_bias),
                            n_members=self.n_members, occupancy=self._occupied,
                            occupancy_resolution=int(cfg.occupancy_resolution),
                            view=self._opt["view"] if cfg.view_degree > 0 else None,
-                           view_degree=int(cfg.view_degree), view_resolution=int(cfg.view_resolution))
+                           view_degree=int(cfg.view_degree), view_resolution=int(cfg.view_resolution),
+                           level_weights=self._level_weights(), grid_gradient=self._grid_opt.gradient)
+
+    def level_weights(self) -> np.ndarray:
+        """The weights (float64 (n_levels,), in [0, 1]) of the grid's levels at the
+        current step: all 1 unless ``anneal_steps`` (coarse-to-fine annealing)."""
+        cfg = self.config
+        L, n = int(cfg.n_levels), int(cfg.anneal_steps)
+        if n == 0 or self._step >= n or L == 1:
+            return np.ones(L)
+        # Level 0 always counts; level l ramps up linearly over the l-th of the (L-1) parts of the schedule.
+        progress = self._step / n * (L - 1)
+        return np.clip(progress - np.arange(L) + 1.0, 0.0, 1.0)
+
+    def _level_weights(self):
+        """:meth:`level_weights` as opaque Dr.Jit scalars (kernels compile once for all steps),
+        or None once they are all 1."""
+        w = self.level_weights()
+        if np.all(w == 1.0):
+            return None
+        return tuple(dr.opaque(mi.Float, float(x)) for x in w)
 
     @property
     def view_size(self) -> int:
@@ -232,7 +258,8 @@ class Ensemble:
         return np.ascontiguousarray(np.transpose(t, (1, 0, 2)))
 
     def _numpy(self, key) -> np.ndarray:
-        return np.array(dr.detach(self._opt[key]), dtype=np.float32)
+        value = self._grid_opt.table if key == "grid" else dr.detach(self._opt[key])
+        return np.array(value, dtype=np.float32)
 
     def _check_member(self, member):
         if not is_whole(member) or not 0 <= member < self.n_members:
@@ -419,6 +446,7 @@ class Ensemble:
         the occupancy grid when one is due)."""
         self._check_variant()
         self._opt.step()
+        self._grid_opt.step()
         self._step += 1
         cfg = self.config
         if cfg.occupancy_resolution > 0:
@@ -560,7 +588,7 @@ class Ensemble:
             raise UserError(f"fisher_diag: probes must be a whole number >= 1, got {probes!r}")
         op, dp, n, n_pad, B = self._pad(origins, directions)
         rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(member),)))
-        grid = mi.Float(dr.detach(self._opt["grid"]))
+        grid = mi.Float(self._grid_opt.table)
         bg = mi.Float(dr.detach(self._opt["background"]))
         acc = np.zeros(self.n_params, np.float64)
         for _ in range(int(probes)):

@@ -253,3 +253,14 @@ def test_many_levels_save_and_load(tmp_path):
     old["config"] = np.array(json.dumps(config))
     np.savez(tmp_path / "old.npz", **old)
     assert Ensemble.load(tmp_path / "old.npz").config.anneal_steps == 0
+
+
+def test_skipping_waits_for_annealing():
+    a = views([[0.0, 0.3, 2.2]], width=8, height=8)
+    ens = Ensemble(*BOX, n_members=1, config=annealed(6, occupancy_resolution=8, occupancy_warmup=1,
+                                                      occupancy_interval=1), seed=0)
+    ens.set_rays(*a)
+    ens.train(5)
+    assert ens.occupancy() is None
+    ens.train(1)
+    assert ens.occupancy() is not None

@@ -121,7 +121,8 @@ class FieldConfig:
         on grid levels): level 0 always counts, level ``l`` is weighted
         ``clip(step / anneal_steps * (n_levels - 1) - l + 1, 0, 1)``, so the
         finest reaches 1 at ``anneal_steps``; renders use the current
-        weights. 0 (the default) turns it off.
+        weights. Empty-space skipping waits until it is over. 0 (the
+        default) turns it off.
     n_features:
         Features per vertex; fixed at 4: (density logit, red, green, blue
         logits). The levels' trilinearly interpolated features are summed,

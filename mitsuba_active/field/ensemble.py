@@ -453,7 +453,10 @@ class Ensemble:
             self._occupancy_age += 1
             # The age is counted after each step, so a warm-up of 0 refreshes after the first step.
             since = self._occupancy_age - max(1, int(cfg.occupancy_warmup))
-            if since >= 0 and since % int(cfg.occupancy_interval) == 0:
+            # Not while annealing: the coarse levels alone are too faint for the threshold, and
+            # an emptied grid would stop training for good.
+            annealing = self._step < int(cfg.anneal_steps)
+            if since >= 0 and not annealing and (since % int(cfg.occupancy_interval) == 0 or self._occupancy is None):
                 self._refresh_occupancy()
 
     def train(self, steps: int, progress: bool = False) -> np.ndarray:

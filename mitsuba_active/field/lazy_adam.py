@@ -80,7 +80,9 @@ class GridGradient:
         """(array, first entry, scatter mode, marks or None) for the level starting at ``level_offset``."""
         if level_offset < self.split:
             return self.small, 0, dr.ReduceMode.Expand, None
-        return self.large, self.split, dr.ReduceMode.NoConflicts, self.touched
+        # Racy writes are rare among a CPU's few threads, not among a GPU's thousands.
+        cpu = dr.backend_v(mi.Float) == dr.JitBackend.LLVM
+        return self.large, self.split, dr.ReduceMode.NoConflicts if cpu else dr.ReduceMode.Auto, self.touched
 
     def renew_small(self):
         self.small = dr.zeros(mi.Float, self.split * self.row)
@@ -171,9 +173,14 @@ class LazyAdam:
         # Evaluated before the scatters: pending gathers of the arrays would make them copy the arrays first.
         dr.eval(new)
         del g, old
-        for a, x in zip((self.m, self.v, self.table), new):
-            dr.scatter(a, x, at, mode=dr.ReduceMode.NoConflicts)
-        dr.scatter(G.large, XF(*[mi.Float(0.0)] * R), rows)
+        # Written 4 floats at a time: Dr.Jit 1.5's plain scatters of 8 or more
+        # floats a lane crashed (K >= 2) where its packet gathers do not.
+        zero = mi.Vector4f(0.0)
+        for k in range(R // N_CHANNELS):
+            four = slice(N_CHANNELS * k, N_CHANNELS * (k + 1))
+            for a, x in zip((self.m, self.v, self.table), new):
+                dr.scatter(a, mi.Vector4f(*list(x)[four]), at * (R // N_CHANNELS) + k, mode=dr.ReduceMode.NoConflicts)
+            dr.scatter(G.large, zero, rows * (R // N_CHANNELS) + k)
         dr.scatter(G.touched, False, rows)
 
     def _dense_step(self, grad, scale):

@@ -25,7 +25,7 @@ from ..checks import is_whole
 from ..errors import TrainingDiverged, UserError
 from ..variant import require_variant
 from .config import MAX_MEMBERS, MAX_STEPS, FieldConfig
-from .grid import GridLayout, init_grid
+from .grid import GridLayout, anneal_weights, init_grid
 from .lazy_adam import LazyAdam
 from .occupancy import DECAY, cell_opacity
 from .render import FieldParams, hash_u32, render_flat, render_members, uniform_from_u32
@@ -200,14 +200,8 @@ class Ensemble:
 
     def level_weights(self) -> np.ndarray:
         """The weights (float64 (n_levels,), in [0, 1]) of the grid's levels at the
-        current step: all 1 unless ``anneal_steps`` (coarse-to-fine annealing)."""
-        cfg = self.config
-        L, n = int(cfg.n_levels), int(cfg.anneal_steps)
-        if n == 0 or self._step >= n or L == 1:
-            return np.ones(L)
-        # Level 0 always counts; level l ramps up linearly over the l-th of the (L-1) parts of the schedule.
-        progress = self._step / n * (L - 1)
-        return np.clip(progress - np.arange(L) + 1.0, 0.0, 1.0)
+        current step: all 1 unless ``anneal_steps`` (see :func:`.grid.anneal_weights`)."""
+        return anneal_weights(self.config.n_levels, self.config.anneal_steps, self._step)
 
     def _level_weights(self):
         """:meth:`level_weights` as opaque Dr.Jit scalars (kernels compile once for all steps),

@@ -77,6 +77,17 @@ def init_grid(layout: GridLayout, cfg: FieldConfig, seeds) -> np.ndarray:
     return out
 
 
+def anneal_weights(n_levels: int, anneal_steps: int, step: int) -> np.ndarray:
+    """Coarse-to-fine weights of the levels (float64 (n_levels,), in [0, 1]) at
+    training step ``step``: level 0 always 1, level ``l`` ramping linearly
+    from 0 to 1 over the ``l``-th of ``n_levels - 1`` equal parts of
+    ``anneal_steps`` steps; all 1 when ``anneal_steps`` is 0 or has passed."""
+    L, n = int(n_levels), int(anneal_steps)
+    if n == 0 or step >= n or L == 1:
+        return np.ones(L)
+    return np.clip(step / n * (L - 1) - np.arange(L) + 1.0, 0.0, 1.0)
+
+
 def reduce_mode():
     """Scatter mode of the gathers' adjoint (the backward pass).
 

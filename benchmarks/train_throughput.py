@@ -1,17 +1,10 @@
 """Training throughput of the radiance-field ensemble (ray-samples per second).
 
 A ray-sample is one of the ``n_samples`` stratified samples of one training
-ray of one member. Without empty-space skipping every sample is evaluated,
-so ``samples/s = K * batch_rays * n_samples / step_time``; with it
-(``occupancy_resolution > 0``, e.g. ``--preset default --width 200``) only the
-samples in occupied cells are, and those are counted (for each timed step,
-from its batch, outside the timing): ``ray_samples_per_s`` counts the
-evaluated samples, ``ray_samples_all_per_s`` all, ``rays_per_s`` the rays. A
-step is a full training step: batch sampling, forward, backward and the
-Adam update, timed with the loss read back (which synchronises the device).
-With skipping, each ensemble first trains ``occupancy_warmup +
-occupancy_interval`` steps on the synthetic sphere so that the grid has
-emptied around it.
+ray of one member; every sample is evaluated (no empty-space skipping), so
+``samples/s = K * batch_rays * n_samples / step_time``. A step is a full
+training step: batch sampling, forward, backward and the Adam update, timed
+with the loss read back (which synchronises the device).
 
 Usage::
 
@@ -41,8 +34,7 @@ Diagnostics explain how the step time grows with K:
   renderer pays at least this, so its K=4 / K=1 ratio bounds what fusing the
   members' compositing can achieve.
 
-``--preset NAME [--width W]`` starts from a run preset's evaluation field for
-images W pixels across; ``--set OPTION=VALUE`` (repeatable) changes FieldConfig options, e.g. the
+``--set OPTION=VALUE`` (repeatable) changes FieldConfig options, e.g. the
 4-level grid of earlier versions: ``--set n_levels=4``. The default grid is
 also that of the ``fast`` preset, of every planner's ensemble and of the
 ``default`` preset's evaluation field up to 64-pixel images, whose other
@@ -73,9 +65,6 @@ import numpy as np  # noqa: E402
 
 from mitsuba_active.errors import UserError  # noqa: E402
 from mitsuba_active.field import Ensemble, FieldConfig  # noqa: E402
-from mitsuba_active.field.config import FIELD_PRESETS  # noqa: E402
-from mitsuba_active.field.occupancy import occupied  # noqa: E402
-from mitsuba_active.field.render import sample_along_rays  # noqa: E402
 
 
 def synthetic_rays(n_views=20, width=64, height=64, radius=3.0, sphere=0.6, seed=0):
@@ -109,20 +98,6 @@ def synthetic_rays(n_views=20, width=64, height=64, radius=3.0, sphere=0.6, seed
 def rss_mib() -> float:
     with open("/proc/self/statm") as f:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-
-
-def evaluated_samples(e) -> int:
-    """Samples of the next training step's batch that one member evaluates:
-    inside the box and, with skipping, in an occupied cell."""
-    idx, jitter = e._batch(e._step)
-    o = dr.gather(mi.Point3f, e._rays["o"], idx)
-    d = dr.gather(mi.Vector3f, e._rays["d"], idx)
-    p = e.params()
-    s = sample_along_rays(o, d, p, jitter)
-    valid = s["valid"]
-    if p.occupancy is not None:
-        valid = valid & occupied(p.occupancy, p.occupancy_resolution, s["u"])
-    return int(np.count_nonzero(np.array(valid)))
 
 
 def ensembles(ks, rays, cfg, warmup):
@@ -163,16 +138,14 @@ def time_steps(ks, rays, cfg, steps, repeats, warmup, kinds=(True,)):
             for k, e in ensembles(ks, rays, cfg, warmup).items():
                 ens[k, marched] = e
     times = {key: [] for key in ens}
-    counts = {key: [] for key in ens}
     for _ in range(repeats):
         for (k, marched), e in ens.items():
             with compositing(marched):
                 for _ in range(steps):
-                    counts[k, marched].append(evaluated_samples(e))
                     t0 = time.perf_counter()
                     e.train(1)
                     times[k, marched].append(time.perf_counter() - t0)
-    return times, counts
+    return times
 
 
 def phase_times(ks, rays, cfg, steps, warmup):
@@ -187,11 +160,11 @@ def phase_times(ks, rays, cfg, steps, warmup):
             dr.sync_thread()
             t1 = time.perf_counter()
             dr.backward(loss)
-            dr.eval()  # the gradient scatters
+            dr.eval(dr.grad(e.params().grid))
             dr.sync_thread()
             t2 = time.perf_counter()
             e.optimizer_step()
-            dr.eval()
+            dr.eval(e.params().grid)
             dr.sync_thread()
             t3 = time.perf_counter()
             for name, dt in (("forward", t1 - t0), ("backward", t2 - t1), ("adam", t3 - t2)):
@@ -263,73 +236,61 @@ def main(argv=None):
     ap.add_argument("--members", type=int, nargs="+", default=[1, 4])
     ap.add_argument("--memory-steps", type=int, default=0,
                     help="also track RSS over this many K=1 steps (e.g. 2000)")
-    ap.add_argument("--preset", choices=list(FIELD_PRESETS), default=None,
-                    help="start from a run preset's evaluation field [FieldConfig's defaults]")
-    ap.add_argument("--width", type=int, default=None, help="the preset's image width (its grid follows it)")
     ap.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
                     help="a FieldConfig option, e.g. --set n_levels=4 (repeatable)")
-    ap.add_argument("--no-diagnostics", action="store_true",
-                    help="time the steps and phases only (not the lookups alone nor the grid-only step)")
     ap.add_argument("--out", default="benchmarks/results/train_throughput.json")
     args = ap.parse_args(argv)
 
     try:
-        base = FIELD_PRESETS[args.preset].config_options(args.width) if args.preset else {}
-        cfg = FieldConfig.from_options(args.set, **base)  # 4096 rays x 64 samples by default
+        cfg = FieldConfig.from_options(args.set)  # 4096 rays x 64 samples by default
     except UserError as exc:
         ap.error(str(exc))
-    if cfg.occupancy_resolution > 0:  # skipping only once the grid has been refreshed
-        args.warmup = max(args.warmup, cfg.occupancy_warmup + cfg.occupancy_interval)
+    if cfg.occupancy_resolution > 0:
+        ap.error("the sample counts assume every sample is evaluated: leave occupancy_resolution at 0")
     rays = synthetic_rays()
-    result = dict(batch_rays=cfg.batch_rays, n_samples=cfg.n_samples, preset=args.preset, width=args.width,
+    result = dict(batch_rays=cfg.batch_rays, n_samples=cfg.n_samples,
                   config=cfg.to_dict(), machine=platform.processor() or platform.machine(),
                   cpu_count=os.cpu_count(), variant=__import__("mitsuba").variant(),
-                  sample_counting="ray_samples_per_s: K * the samples evaluated per step (in the box and, "
-                                  "with skipping, in occupied cells), counted for each timed step; "
-                                  "ray_samples_all_per_s: K * batch_rays * n_samples per step",
+                  sample_counting="K * batch_rays * n_samples per step: every stratified "
+                                  "sample of every ray and member is evaluated "
+                                  "(no empty-space skipping)",
                   members={})
     # The CPU marches rays to composite them; the GPU path's blocked reductions are timed beside it.
     cpu = dr.backend_v(mi.Float) == dr.JitBackend.LLVM
-    all_times, all_counts = time_steps(args.members, rays, cfg, args.steps, args.repeats, args.warmup,
-                                       kinds=(True, False) if cpu and not args.no_diagnostics else (True,))
+    all_times = time_steps(args.members, rays, cfg, args.steps, args.repeats, args.warmup,
+                           kinds=(True, False) if cpu else (True,))
     for k in args.members:
         times = all_times[k, True]
         med = statistics.median(times)
-        evaluated = statistics.median(all_counts[k, True])
-        sps = k * evaluated / med
+        sps = k * cfg.batch_rays * cfg.n_samples / med
         result["members"][str(k)] = dict(step_ms_median=med * 1e3,
                                          step_ms_min=min(times) * 1e3,
-                                         evaluated_samples_per_member_median=evaluated,
                                          ray_samples_per_s=sps,
-                                         ray_samples_all_per_s=k * cfg.batch_rays * cfg.n_samples / med,
-                                         rays_per_s=k * cfg.batch_rays / med,
+                                         ray_samples_per_s_best=k * cfg.batch_rays * cfg.n_samples / min(times),
                                          timed_steps=len(times))
         print(f"K={k}: step {med * 1e3:.1f} ms (median of {len(times)}, min {min(times) * 1e3:.1f}), "
-              f"{sps / 1e6:.2f} M ray-samples/s evaluated ({evaluated:.0f} of {cfg.batch_rays * cfg.n_samples} "
-              f"a member), {k * cfg.batch_rays / med / 1e3:.1f} k rays/s")
+              f"{sps / 1e6:.2f} M ray-samples/s")
     if "1" in result["members"] and "4" in result["members"]:
         ratio = result["members"]["4"]["step_ms_median"] / result["members"]["1"]["step_ms_median"]
         result["k4_over_k1_step_time"] = ratio
         print(f"K=4 / K=1 step time: {ratio:.2f}")
-    if cpu and not args.no_diagnostics:
+    if cpu:
         blocked = {str(k): 1e3 * statistics.median(all_times[k, False]) for k in args.members}
         result["blocked_compositing_step_ms"] = blocked
         print("with the blocked reductions instead: " + ", ".join(f"K={k} {ms:.1f} ms" for k, ms in blocked.items())
               + (f" (K=4 / K=1 {blocked['4'] / blocked['1']:.2f})" if "1" in blocked and "4" in blocked else ""))
 
     phases = phase_times(args.members, rays, cfg, args.steps, args.warmup)
+    lookups = lookup_times(args.members, cfg)
+    grid_only = grid_only_times(args.members, rays, cfg, args.steps, args.warmup)
     result["phases_ms"] = phases
+    result["lookups_ms"] = lookups
+    result["grid_only_step_ms"] = grid_only
     for k in args.members:
         p = phases[str(k)]
-        print(f"K={k}: forward {p['forward']:.1f} ms, backward {p['backward']:.1f} ms, Adam {p['adam']:.1f} ms")
-    grid_only = {}
-    if not args.no_diagnostics:
-        lookups = lookup_times(args.members, cfg)
-        grid_only = grid_only_times(args.members, rays, cfg, args.steps, args.warmup)
-        result["lookups_ms"] = lookups
-        result["grid_only_step_ms"] = grid_only
-        for k in args.members:
-            print(f"K={k}: lookups alone {lookups[str(k)]:.1f} ms; grid-only step {grid_only[str(k)]:.1f} ms")
+        print(f"K={k}: forward {p['forward']:.1f} ms, backward {p['backward']:.1f} ms, "
+              f"Adam {p['adam']:.1f} ms; lookups alone {lookups[str(k)]:.1f} ms; "
+              f"grid-only step {grid_only[str(k)]:.1f} ms")
     if "1" in grid_only and "4" in grid_only:
         result["grid_only_k4_over_k1"] = grid_only["4"] / grid_only["1"]
         print(f"grid-only step K=4 / K=1: {result['grid_only_k4_over_k1']:.2f}")

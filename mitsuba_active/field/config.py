@@ -116,16 +116,6 @@ class FieldConfig:
         log2 of the maximum number of vertices stored per level. Levels whose
         ``(res+1)**3`` vertices fit are stored densely (no collisions); finer
         levels are hashed into a table of this size (Instant-NGP style).
-        A step updates only the entries its samples touched
-        (:mod:`mitsuba_active.field.lazy_adam`), so its cost follows the
-        samples rather than the table.
-    anneal_steps:
-        Coarse-to-fine annealing of the levels (FreeNeRF's frequency mask
-        on grid levels): level 0 always counts, level ``l`` is weighted
-        ``clip(step / anneal_steps * (n_levels - 1) - l + 1, 0, 1)``, so the
-        finest reaches 1 at ``anneal_steps``; renders use the current
-        weights. Empty-space skipping waits until it is over. 0 (the
-        default) turns it off.
     n_features:
         Features per vertex; fixed at 4: (density logit, red, green, blue
         logits). The levels' trilinearly interpolated features are summed,
@@ -248,7 +238,6 @@ class FieldConfig:
     base_resolution: int = 16
     per_level_scale: float = 2.0
     log2_table_size: int = 17
-    anneal_steps: int = 0
     n_features: int = 4
     init_scale: float = 0.1
     density_bias: float = -1.0
@@ -305,8 +294,6 @@ class FieldConfig:
                      "render_batch", "batch_rays"):
             if int(getattr(self, name)) < 1:
                 raise UserError(f"FieldConfig.{name} must be >= 1")
-        if not 0 <= int(self.anneal_steps) <= MAX_STEPS:
-            raise UserError(f"FieldConfig.anneal_steps must be in [0, {MAX_STEPS}] (0: off)")
         if not 1 <= self.log2_table_size <= 26:
             raise UserError("FieldConfig.log2_table_size must be in [1, 26]")
         # Upper bounds where larger values only exhaust memory or overflow

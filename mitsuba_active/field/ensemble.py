@@ -25,8 +25,7 @@ from ..checks import is_whole
 from ..errors import TrainingDiverged, UserError
 from ..variant import require_variant
 from .config import MAX_MEMBERS, MAX_STEPS, FieldConfig
-from .grid import GridLayout, anneal_weights, init_grid
-from .lazy_adam import LazyAdam
+from .grid import GridLayout, init_grid
 from .occupancy import DECAY, cell_opacity
 from .regularisers import ray_regularisers
 from .render import FieldParams, hash_u32, render_flat, render_members, uniform_from_u32
@@ -154,18 +153,15 @@ class Ensemble:
         return grid
 
     def _make_optimizer(self, grid, bg, adam_state=None, view=None):
-        """Adam over the grid table (K, E, 4) (:class:`.lazy_adam.LazyAdam`), the
-        backgrounds (K, 3) and, with ``view_degree``, the view-dependent colour's
-        table (flat, as :meth:`view_numpy` gives it; None: zeros) (``drjit.opt.Adam``);
-        ``adam_state`` as saved: ``{key: (t, m, v)}``."""
+        """Adam over the grid table (K, E, 4), the backgrounds (K, 3) and, with
+        ``view_degree``, the view-dependent colour's table (flat, as
+        :meth:`view_numpy` gives it; None: zeros); ``adam_state`` as saved."""
         cfg = self.config
         self._opt = dr.opt.Adam(lr=cfg.lr, beta_1=cfg.beta_1, beta_2=cfg.beta_2,
                                 epsilon=cfg.epsilon)
         # (K, E, 4) member-major on the host -> (E, K, 4) interleaved table.
         table = np.ascontiguousarray(np.transpose(np.asarray(grid, np.float32), (1, 0, 2)))
-        t, m, v = (adam_state or {}).get("grid", (0, None, None))
-        self._grid_opt = LazyAdam(table.ravel(), self.layout, self.n_members, cfg.lr, cfg.beta_1, cfg.beta_2,
-                                  cfg.epsilon, m, v, t)
+        self._opt["grid"] = mi.Float(table.ravel())
         self._opt["background"] = mi.Float(np.ascontiguousarray(bg, np.float32).ravel())
         if cfg.view_degree > 0:  # a diffuse start: the residual is 0 until views ask for it
             self._opt["view"] = mi.Float(np.zeros(self.view_size, np.float32) if view is None else
@@ -173,8 +169,6 @@ class Ensemble:
         self._opt.set_learning_rate({"background": cfg.lr_background})
         if adam_state is not None:
             for key, (t, m, v) in adam_state.items():
-                if key == "grid":
-                    continue
                 value, promoted, lr, _ = self._opt.state[key]
                 self._opt.state[key] = (value, promoted, lr,
                                         (mi.UInt32(int(t)), mi.Float(m), mi.Float(v), None))
@@ -190,7 +184,7 @@ class Ensemble:
         """Current parameters as a :class:`FieldParams` (Dr.Jit arrays)."""
         self._check_variant()
         cfg = self.config
-        return FieldParams(grid=self._grid_opt.param(), background=self._opt["background"],
+        return FieldParams(grid=self._opt["grid"], background=self._opt["background"],
                            layout=self.layout, box_min=self.box_min, box_max=self.box_max,
                            n_samples=int(cfg.n_samples),
                            density_bias=float(cfg.density_bias),
@@ -199,21 +193,7 @@ class Ensemble:
                            view=self._opt["view"] if cfg.view_degree > 0 else None,
                            view_degree=int(cfg.view_degree), view_resolution=int(cfg.view_resolution),
                            contraction=float(cfg.contraction),
-                           near=float(cfg.near) * float(np.linalg.norm(np.subtract(self.box_max, self.box_min))),
-                           level_weights=self._level_weights(), grid_gradient=self._grid_opt.gradient)
-
-    def level_weights(self) -> np.ndarray:
-        """The weights (float64 (n_levels,), in [0, 1]) of the grid's levels at the
-        current step: all 1 unless ``anneal_steps`` (see :func:`.grid.anneal_weights`)."""
-        return anneal_weights(self.config.n_levels, self.config.anneal_steps, self._step)
-
-    def _level_weights(self):
-        """:meth:`level_weights` as opaque Dr.Jit scalars (kernels compile once for all steps),
-        or None once they are all 1."""
-        w = self.level_weights()
-        if np.all(w == 1.0):
-            return None
-        return tuple(dr.opaque(mi.Float, float(x)) for x in w)
+                           near=float(cfg.near) * float(np.linalg.norm(np.subtract(self.box_max, self.box_min))))
 
     @property
     def view_size(self) -> int:
@@ -256,8 +236,7 @@ class Ensemble:
         return np.ascontiguousarray(np.transpose(t, (1, 0, 2)))
 
     def _numpy(self, key) -> np.ndarray:
-        value = self._grid_opt.table if key == "grid" else dr.detach(self._opt[key])
-        return np.array(value, dtype=np.float32)
+        return np.array(dr.detach(self._opt[key]), dtype=np.float32)
 
     def _check_member(self, member):
         if not is_whole(member) or not 0 <= member < self.n_members:
@@ -472,17 +451,13 @@ class Ensemble:
         the occupancy grid when one is due)."""
         self._check_variant()
         self._opt.step()
-        self._grid_opt.step()
         self._step += 1
         cfg = self.config
         if cfg.occupancy_resolution > 0:
             self._occupancy_age += 1
             # The age is counted after each step, so a warm-up of 0 refreshes after the first step.
             since = self._occupancy_age - max(1, int(cfg.occupancy_warmup))
-            # Not while annealing: the coarse levels alone are too faint for the threshold, and
-            # an emptied grid would stop training for good.
-            annealing = self._step < int(cfg.anneal_steps)
-            if since >= 0 and not annealing and (since % int(cfg.occupancy_interval) == 0 or self._occupancy is None):
+            if since >= 0 and since % int(cfg.occupancy_interval) == 0:
                 self._refresh_occupancy()
 
     def train(self, steps: int, progress: bool = False) -> np.ndarray:
@@ -618,7 +593,7 @@ class Ensemble:
             raise UserError(f"fisher_diag: probes must be a whole number >= 1, got {probes!r}")
         op, dp, n, n_pad, B = self._pad(origins, directions)
         rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(member),)))
-        grid = mi.Float(self._grid_opt.table)
+        grid = mi.Float(dr.detach(self._opt["grid"]))
         bg = mi.Float(dr.detach(self._opt["background"]))
         acc = np.zeros(self.n_params, np.float64)
         for _ in range(int(probes)):

@@ -77,17 +77,6 @@ def init_grid(layout: GridLayout, cfg: FieldConfig, seeds) -> np.ndarray:
     return out
 
 
-def anneal_weights(n_levels: int, anneal_steps: int, step: int) -> np.ndarray:
-    """Coarse-to-fine weights of the levels (float64 (n_levels,), in [0, 1]) at
-    training step ``step``: level 0 always 1, level ``l`` ramping linearly
-    from 0 to 1 over the ``l``-th of ``n_levels - 1`` equal parts of
-    ``anneal_steps`` steps; all 1 when ``anneal_steps`` is 0 or has passed."""
-    L, n = int(n_levels), int(anneal_steps)
-    if n == 0 or step >= n or L == 1:
-        return np.ones(L)
-    return np.clip(step / n * (L - 1) - np.arange(L) + 1.0, 0.0, 1.0)
-
-
 def reduce_mode():
     """Scatter mode of the gathers' adjoint (the backward pass).
 
@@ -102,11 +91,9 @@ def reduce_mode():
     return dr.ReduceMode.Auto
 
 
-def corners(layout: GridLayout, u, level_weights=None):
+def corners(layout: GridLayout, u):
     """Yield (level, table entry index, trilinear weight) for the 8 corners
-    of every level around normalised positions ``u`` (``mi.Point3f``); with
-    ``level_weights`` (one ``mi.Float`` per level) each level's weights are
-    scaled by its own."""
+    of every level around normalised positions ``u`` (``mi.Point3f``)."""
     x_unit = dr.clip(mi.Vector3f(u), 0.0, 1.0)
     for level, r in enumerate(layout.resolutions):
         x = x_unit * float(r)
@@ -123,8 +110,6 @@ def corners(layout: GridLayout, u, level_weights=None):
                 wa = f[a] if bits[a] else 1.0 - f[a]
                 w = wa if w is None else w * wa
                 c.append(x0[a] + 1 if bits[a] else x0[a])
-            if level_weights is not None:
-                w = w * level_weights[level]
             if layout.dense[level]:
                 idx = c[0] + c[1] * stride + c[2] * (stride * stride)
             else:
@@ -133,7 +118,7 @@ def corners(layout: GridLayout, u, level_weights=None):
             yield level, idx + layout.offsets[level], w
 
 
-def query(grid, layout: GridLayout, n_members: int, u, member=None, active=True, level_weights=None):
+def query(grid, layout: GridLayout, n_members: int, u, member=None, active=True):
     """Summed trilinear grid features at positions ``u`` of the unit cube.
 
     The table is member-interleaved: entry ``e`` of member ``k`` occupies
@@ -149,8 +134,6 @@ def query(grid, layout: GridLayout, n_members: int, u, member=None, active=True,
            outside are clamped to the border cells).
         member: None for all members, or an int / ``mi.UInt32`` per point.
         active: mask; inactive lanes read nothing and return 0.
-        level_weights: None, or one ``mi.Float`` (opaque scalar) per level
-           that scales the level's features (coarse-to-fine annealing).
 
     Returns:
         ``mi.Vector4f`` raw (density logit, r, g, b logits) summed over
@@ -161,7 +144,7 @@ def query(grid, layout: GridLayout, n_members: int, u, member=None, active=True,
     if member is None:
         XF = type(mi.ArrayXf())
         acc = [[mi.Float(0.0)] * N_CHANNELS for _ in range(K)]
-        for _, idx, w in corners(layout, u, level_weights):
+        for _, idx, w in corners(layout, u):
             # One K*4-wide packet gather per corner (index in units of K*4).
             v = dr.gather(XF, grid, idx, active, mode=mode, shape=(K * N_CHANNELS, dr.width(idx)))
             for k in range(K):
@@ -170,41 +153,30 @@ def query(grid, layout: GridLayout, n_members: int, u, member=None, active=True,
         return [mi.Vector4f(*a) for a in acc]
     mem = mi.UInt32(member)
     acc = [mi.Float(0.0)] * N_CHANNELS
-    for _, idx, w in corners(layout, u, level_weights):
+    for _, idx, w in corners(layout, u):
         v = dr.gather(mi.Vector4f, grid, idx * K + mem, active, mode=mode)
         for ch in range(N_CHANNELS):
             acc[ch] = dr.fma(v[ch], w, acc[ch])
     return mi.Vector4f(*acc)
 
 
-def accumulate(table, layout: GridLayout, n_members: int, u, values, member=None, active=True,
-               level_weights=None):
+def accumulate(table, layout: GridLayout, n_members: int, u, values, member=None, active=True):
     """Add ``values`` at positions ``u`` to ``table``, spread over the grid
     corners with the trilinear weights: the adjoint of :func:`query` (its
     gradient with respect to the table), in the same layout.
 
     Args:
-        table: ``mi.Float`` of the grid table's size (the gradient being
-            summed), or a :class:`~mitsuba_active.field.lazy_adam.GridGradient`
-            (its two parts, each level into its own with its scatter mode).
+        table: ``mi.Float`` of the grid table's size (the gradient being summed).
         values: ``K*4`` ``mi.Float`` (every member's 4, member after member)
             when ``member`` is None, else 4 (that member's).
-        layout, n_members, u, member, active, level_weights: as for :func:`query`.
+        layout, n_members, u, member, active: as for :func:`query`.
     """
     K = int(n_members)
+    mode = reduce_mode()
     XF = type(mi.ArrayXf())
     mem = None if member is None else mi.UInt32(member)
-    for level, idx, w in corners(layout, u, level_weights):
-        marks = None
-        if isinstance(table, mi.Float):
-            target, first, mode = table, 0, reduce_mode()
-        else:
-            target, first, mode, marks = table.target(layout.offsets[level])
-        if first:
-            idx = idx - first
-        if marks is not None:  # every lane writes True: no atomics needed
-            dr.scatter(marks, True, idx, active)
+    for _, idx, w in corners(layout, u):
         if mem is None:  # one K*4-wide packet per corner, as query gathers it
-            dr.scatter_add(target, XF(*[v * w for v in values]), idx, active, mode=mode)
+            dr.scatter_add(table, XF(*[v * w for v in values]), idx, active, mode=mode)
         else:
-            dr.scatter_add(target, mi.Vector4f(*[v * w for v in values]), idx * K + mem, active, mode=mode)
+            dr.scatter_add(table, mi.Vector4f(*[v * w for v in values]), idx * K + mem, active, mode=mode)

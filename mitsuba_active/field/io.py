@@ -78,10 +78,9 @@ def save_ensemble(ens, path) -> Path:
         arrays["view"] = ens.view_numpy()
         keys += ("view",)
     st = ens._opt.state
-    opt = ens._grid_opt
-    arrays["adam_t"] = np.int64(opt.t)
+    arrays["adam_t"] = np.int64(int(np.array(st["grid"][3][0]).ravel()[0]))
     for key in keys:
-        m, v = (opt.m, opt.v) if key == "grid" else st[key][3][1:3]
+        _, m, v, _ = st[key][3]
         arrays[f"adam_m_{key}"] = np.array(m, np.float32)
         arrays[f"adam_v_{key}"] = np.array(v, np.float32)
     if ens.config.occupancy_resolution > 0:  # the age counts the warm-up too
@@ -127,7 +126,7 @@ def load_ensemble(cls, path):
     except (OSError, ValueError, EOFError, KeyError, TypeError, AttributeError, RecursionError, zipfile.BadZipFile,
             zlib.error) as exc:
         raise UserError(f"cannot read ensemble file {path}: {exc}") from None
-    dr.eval(ens._grid_opt.table, ens._opt["background"])
+    dr.eval(ens._opt["grid"], ens._opt["background"])
     return ens
 
 

@@ -59,11 +59,6 @@ class FieldParams:
             box sizes (``FieldConfig.contraction``).
         near: distance from a ray's origin where its samples may start
             (scene units; ``FieldConfig.near`` times the diagonal).
-        level_weights: None, or one opaque ``mi.Float`` per grid level that
-            scales its features (coarse-to-fine annealing, see :mod:`.grid`).
-        grid_gradient: None, or the :class:`~.lazy_adam.GridGradient` that
-            the marched backward pass adds the gradient of ``grid`` to when
-            ``grid`` is its ``param`` (any other table gets Dr.Jit's gradient).
     """
 
     grid: object
@@ -81,8 +76,6 @@ class FieldParams:
     view_resolution: int = 0
     contraction: float = 0.0
     near: float = 0.0
-    level_weights: object = None
-    grid_gradient: object = None
 
     @property
     def diag(self) -> float:
@@ -273,7 +266,7 @@ def field_at(params: FieldParams, u, member, active=True, raw=None):
     the caller already evaluated it.
     """
     if raw is None:
-        raw = query(params.grid, params.layout, params.n_members, u, member, active, params.level_weights)
+        raw = query(params.grid, params.layout, params.n_members, u, member, active)
     sigma, rgb, _ = _raw_to_field(raw, mi.Bool(active), params.density_bias, 1.0 / params.diag)
     return sigma, rgb
 
@@ -523,49 +516,27 @@ class _MarchedGrid(_MarchedComposite):
     grid corners (the adjoint of :func:`.grid.query`) instead of writing it
     out for a separate scatter kernel to read back: for K members that saves
     writing and reading K*4 floats a sample and tracing the corners twice.
-    With empty-space skipping (the occupied samples' indices ``ids`` given)
-    the march writes the occupied samples' gradients and one kernel over
-    those alone adds them to the corners: a corner loop in the march would
-    cost every sample's corner indices, skipped or not.
     """
 
-    def eval(self, grid, raws, lookup, ids, sink, t, delta, valid, S, density_bias, inv_diag, reg=None):
-        # lookup: (layout, n_members, u, member, active, level_weights), the arguments the features were
-        # queried with; ids: the occupied samples' indices (skipping) or None; sink: a GridGradient that
-        # takes the table's gradient, or None.
-        self.grid_width, self.lookup, self.ids, self.sink = dr.width(grid), lookup, ids, sink
+    def eval(self, grid, raws, lookup, t, delta, valid, S, density_bias, inv_diag, reg=None):
+        # lookup: (layout, n_members, u, member, active), the arguments the features were queried with.
+        self.grid_width, self.lookup = dr.width(grid), lookup
         return super().eval(raws, t, delta, valid, S, density_bias, inv_diag, reg)
 
     def _write_gradients(self, j, grads, valid):
-        if self.ids is not None:
-            dr.scatter(self.per_sample, self.XF(*grads), j, valid)
-            return
-        layout, n_members, u, member, _, weights = self.lookup
+        layout, n_members, u, member, _ = self.lookup
         if member is not None and dr.width(member) > 1:
             member = dr.gather(mi.UInt32, member, j)
-        accumulate(self.grads, layout, n_members, dr.gather(mi.Point3f, u, j), grads, member, valid, weights)
+        accumulate(self.grads, layout, n_members, dr.gather(mi.Point3f, u, j), grads, member, valid)
 
     def backward(self):
-        # The sink's arrays, as the optimiser reads them, or a gradient of Dr.Jit's.
-        self.grads = self.sink if self.sink is not None else dr.zeros(mi.Float, self.grid_width)
-        if self.ids is not None:
-            self.per_sample = dr.empty(mi.Float, 4 * self.K * dr.width(self.t))
+        self.grads = dr.zeros(mi.Float, self.grid_width)
         self._march_gradients()
-        if self.ids is not None and dr.width(self.ids) > 0:
-            layout, n_members, u, member, _, weights = self.lookup
-            ids = self.ids
-            if member is not None and dr.width(member) > 1:
-                member = dr.gather(mi.UInt32, member, ids)
-            g = dr.gather(self.XF, self.per_sample, ids, shape=(4 * self.K, dr.width(ids)))
-            accumulate(self.grads, layout, n_members, dr.gather(mi.Point3f, u, ids), list(g), member, True,
-                       weights)
-        self.per_sample = None
-        if self.sink is None:
-            self.set_grad_in("grid", self.grads)
+        self.set_grad_in("grid", self.grads)
 
     def forward(self):
-        layout, n_members, u, member, active, weights = self.lookup
-        d_raws = query(self.grad_in("grid"), layout, n_members, u, member, active, weights)
+        layout, n_members, u, member, active = self.lookup
+        d_raws = query(self.grad_in("grid"), layout, n_members, u, member, active)
         self._march_tangents(d_raws if member is None else [d_raws])
 
     def name(self):
@@ -622,10 +593,10 @@ def lookup_samples(params: FieldParams, s: dict, member=None):
             an int, or a per-sample ``mi.UInt32``.
     """
     if params.occupancy is None:
-        return query(params.grid, params.layout, params.n_members, s["u"], member, s["valid"], params.level_weights)
+        return query(params.grid, params.layout, params.n_members, s["u"], member, s["valid"])
     s["valid"] = s["valid"] & occupied(params.occupancy, params.occupancy_resolution, s["u"])
     n = dr.width(s["valid"])
-    ids = s["ids"] = dr.compress(s["valid"])
+    ids = dr.compress(s["valid"])
     n_members = params.n_members if member is None else 1
     if dr.width(ids) == 0:
         zero = dr.zeros(mi.Vector4f, n)
@@ -633,7 +604,7 @@ def lookup_samples(params: FieldParams, s: dict, member=None):
     u = dr.gather(mi.Point3f, s["u"], ids)
     if member is not None and not isinstance(member, int) and dr.width(member) > 1:
         member = dr.gather(mi.UInt32, member, ids)
-    raw = query(params.grid, params.layout, params.n_members, u, member, True, params.level_weights)
+    raw = query(params.grid, params.layout, params.n_members, u, member, True)
 
     def expand(r):
         full = dr.zeros(mi.Vector4f, n)
@@ -731,12 +702,9 @@ def _rendered(params: FieldParams, s: dict, member, members: list, return_weight
     with dr.suspend_grad():  # _MarchedGrid differentiates the table itself
         raws = lookup_samples(params, s, member)
     raws = tuple(raws) if member is None else (raws,)
-    lookup = (params.layout, params.n_members, s["u"], member, s["valid"], params.level_weights)
-    sink = params.grid_gradient
-    sink = sink if sink is not None and sink.param is params.grid and dr.grad_enabled(params.grid) else None
-    sums = dr.custom(_MarchedGrid, params.grid, raws, lookup, s.get("ids"), sink, s["t"], s["delta"],
-                     _marched_valid(params, s), int(params.n_samples), float(params.density_bias), 1.0 / params.diag,
-                     reg)
+    lookup = (params.layout, params.n_members, s["u"], member, s["valid"])
+    sums = dr.custom(_MarchedGrid, params.grid, raws, lookup, s["t"], s["delta"], _marched_valid(params, s),
+                     int(params.n_samples), float(params.density_bias), 1.0 / params.diag, reg)
     return _over_background(params, s, [(*m[:3], None, m[3] if reg else None) for m in sums], members,
                             return_weights)
 

@@ -20,6 +20,8 @@ import math
 import numpy as np
 
 from .cameras import Camera, look_at
+from .planners.base import PlanningState, unseen
+from .training import sparse_candidate_rays
 
 #: Draws per wanted pose before the unreachable ones are dropped.
 OVERSAMPLE = 4
@@ -142,3 +144,41 @@ class PoseSampler:
              np.clip(t0 + sigma * math.sqrt(max(1 - t0 ** 2, 0.0)) * rng.standard_normal(m), *s.band))
         phi = phi0 + sigma / max(math.sqrt(max(1 - t0 ** 2, 0.0)), 0.1) * rng.standard_normal(m)
         return self._keep(t, phi, n)
+
+
+def choose_among(planner, journey, state: PlanningState, shown_first: list[Camera], offers: list[Camera],
+                 captured: list[int], batch: int, cfg):
+    """The planner's ``batch`` picks, weighed against travel (:meth:`~mitsuba_active.travel.Journey.weigh`),
+    among the cameras ``shown_first`` (the distinct views captured, whose positions in that list
+    ``captured`` gives in capture order) and ``offers``; ``(picks, scores)``, both over the cameras shown."""
+    cams = list(shown_first) + list(offers)
+    shown = PlanningState(cams, list(captured), state.ensemble, None, state.rng)
+    if planner.needs_ensemble:
+        shown.candidate_rays = sparse_candidate_rays(cams, cfg.rays_per_candidate, cfg.seed + 1)
+    picks, scores = planner.checked_select(shown, batch)
+    picks = journey.weigh(picks, scores, unseen(shown), positions=np.stack([c.position for c in cams]))
+    return picks, scores
+
+
+def choose_fresh(planner, journey, sampler: PoseSampler, state: PlanningState, owners: list[int],
+                 taken: list[Camera], batch: int, rng: np.random.Generator, cfg):
+    """One round of continuous candidates: the planner scores ``cfg.candidates`` fresh poses with the
+    views captured (``taken``: the cameras of the distinct run indices ``owners``), then, where it
+    scores, perturbations around its picks with them.
+
+    Returns ``(chosen, scores)``: each pick a run index of ``owners`` (a view again) or a new
+    :class:`~mitsuba_active.cameras.Camera`; ``chosen`` is None when no pose is reachable."""
+    offers = sampler.sample(rng, cfg.candidates)
+    if not offers:
+        return None, None
+    where = {i: k for k, i in enumerate(owners)}
+    captured = [where[i] for i in state.captured]
+    picks, scores = choose_among(planner, journey, state, taken, offers, captured, batch, cfg)
+    shown = list(taken) + offers
+    if scores is not None:  # a second look, around the picks
+        chosen = [shown[i] for i in picks if i >= len(taken)]
+        near = [c for cam in chosen for c in sampler.around(cam, rng)]
+        if near:
+            shown = list(taken) + chosen + near
+            picks, scores = choose_among(planner, journey, state, taken, chosen + near, captured, batch, cfg)
+    return [owners[i] if i < len(taken) else shown[i] for i in picks], scores

@@ -236,3 +236,14 @@ def diameter_of(bbox_min, bbox_max) -> float:
     """The scene's diameter (scene units): its bounding box's diagonal."""
     d = float(np.linalg.norm(np.asarray(bbox_max, float) - np.asarray(bbox_min, float)))
     return d if d > 0 and math.isfinite(d) else 1.0
+
+
+def stops_along(route: Route, spacing: float, speed: float, room: int) -> tuple[list[Route], Route]:
+    """The pieces of ``route`` (:func:`along_the_way`) that end at the first ``room`` stops, and
+    the rest of the route from the last of them to its end."""
+    pieces = along_the_way(route, spacing, speed)
+    stops = pieces[:-1][:max(room, 0)]
+    rest = pieces[len(stops):]
+    points = np.concatenate([rest[0].points] + [p.points[1:] for p in rest[1:]])
+    length = float(sum(p.length for p in rest))
+    return stops, Route(points, length, length / speed)

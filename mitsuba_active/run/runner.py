@@ -40,8 +40,8 @@ from ..planners.base import planner_digest, planner_label, planner_rng, unseen
 from ..protocol import evaluate_views, new_field
 from ..report import contact_sheet, plot_metrics, plot_views
 from ..training import evaluation_note, has_distances, predict_view, scores_line, sparse_candidate_rays, train_on
-from ..continuous import PoseSampler, RigSurface
-from ..travel import Journey, along_the_way, diameter_of
+from ..continuous import PoseSampler, RigSurface, choose_fresh
+from ..travel import Journey, diameter_of, stops_along
 from ..travelplots import plot_travel
 from ..webpage import REPORT_FILE, write_run_page
 from .config import RunConfig, source_field_config
@@ -424,36 +424,16 @@ class Run:
 
     # -- continuous candidates ---------------------------------------------------
     def _select_continuous(self, state: PlanningState, batch: int) -> tuple[list[int], np.ndarray | None]:
-        """The round's picks among fresh poses (run indices; the poses chosen are added to the run),
-        refined around each pick where the planner scores; ``(picks, scores)``, scores over the offers."""
+        """The round's picks (run indices) among fresh poses (:func:`~mitsuba_active.continuous.choose_fresh`);
+        the poses chosen are added to the run."""
         rng = np.random.default_rng([self.cfg.seed, len(self.record["rounds"]), 1])  # the same on resume
-        offers = self.sampler.sample(rng, self.cfg.candidates)
-        if not offers:
+        owners = list(dict.fromkeys(self.env.captured))  # distinct captured views, in order
+        chosen, scores = choose_fresh(self.planner, self.journey, self.sampler, state, owners,
+                                      [self.source.candidates[i] for i in owners], batch, rng, self.cfg)
+        if chosen is None:
             self._stop(len(self.env.captured), f"the {self.cfg.embodiment} can reach no pose on the rig")
             return [], None
-        cams, picks, scores = self._choose_among(state, offers, batch)
-        taken = len(cams) - len(offers)
-        if scores is not None:  # a second look, around the picks
-            chosen = [cams[i] for i in picks if i >= taken]
-            near = [c for cam in chosen for c in self.sampler.around(cam, rng)]
-            if near:
-                cams, picks, scores = self._choose_among(state, chosen + near, batch)
-                taken = len(cams) - len(chosen) - len(near)
-        owners = list(dict.fromkeys(self.env.captured))
-        return [owners[i] if i < taken else self._add_camera(cams[i], CONTINUOUS) for i in picks], scores
-
-    def _choose_among(self, state: PlanningState, offers: list, batch: int):
-        """The planner's ``batch`` picks (weighed against travel) among ``offers`` and the views captured,
-        which it is shown first; ``(cameras shown, picks, scores)``, picks indexing the cameras shown."""
-        owners = list(dict.fromkeys(self.env.captured))  # distinct captured views, in order
-        where = {i: k for k, i in enumerate(owners)}
-        cams = [self.source.candidates[i] for i in owners] + list(offers)
-        shown = PlanningState(cams, [where[i] for i in self.env.captured], state.ensemble, None, state.rng)
-        if self.planner.needs_ensemble:
-            shown.candidate_rays = sparse_candidate_rays(cams, self.cfg.rays_per_candidate, self.cfg.seed + 1)
-        picks, scores = self.planner.checked_select(shown, batch)
-        picks = self.journey.weigh(picks, scores, unseen(shown), positions=np.stack([c.position for c in cams]))
-        return cams, picks, scores
+        return [c if isinstance(c, int) else self._add_camera(c, CONTINUOUS) for c in chosen], scores
 
     # -- travel -------------------------------------------------------------
     def _travel_initial(self) -> None:
@@ -491,29 +471,24 @@ class Run:
         return done
 
     def _along_the_way(self, route) -> tuple:
-        """Capture the views along ``route`` that the budgets leave room for besides its end;
-        returns the rest of the route and the indices captured."""
-        cfg, pieces = self.cfg, along_the_way(route, self.cfg.along_the_way, self.cfg.speed)
+        """Capture the views along ``route`` that the budgets leave room for besides its end
+        (:func:`~mitsuba_active.travel.stops_along`); returns the rest of the route and their indices."""
+        cfg, done = self.cfg, []
         room = cfg.budget - len(self.env.captured) - 1  # the route's end is captured too
         if cfg.time_budget is not None and cfg.capture_time > 0:
             spare = cfg.time_budget * (1 + 1e-9) - self.journey.time - route.time - cfg.capture_time
             room = min(room, int(spare // cfg.capture_time))
-        stops, done = pieces[:-1][:max(room, 0)], []
-        centre = self.source.scene.center
-        ref = self.source.candidates[0]
+        stops, rest = stops_along(route, cfg.along_the_way, cfg.speed, room)
+        ref, scene = self.source.candidates[0], self.source.scene
         for piece in stops:
-            here = piece.points[-1]
-            cam = Camera(look_at(here, centre, self.source.scene.up), ref.fov, ref.width, ref.height, ref.near,
-                         ref.far)
+            cam = Camera(look_at(piece.points[-1], scene.center, scene.up), ref.fov, ref.width, ref.height,
+                         ref.near, ref.far)
             j = self._add_camera(cam, ALONG_THE_WAY)
             self.env.step(j)
             self.journey.advance(j, piece)
             self._save_view(len(self.env.captured) - 1, self.env.views[-1])
             done.append(j)
-        rest = pieces[len(stops):]
-        points = np.concatenate([rest[0].points] + [p.points[1:] for p in rest[1:]])
-        length = float(sum(p.length for p in rest))
-        return type(route)(points, length, length / cfg.speed), done
+        return rest, done
 
     def _stop(self, views: int, why: str) -> None:
         self.record["stopped"] = {"views": views, "reason": why}

@@ -152,13 +152,15 @@ def plot_views(candidates, captured, heldout, bbox_min, bbox_max, path, up=(0.0,
         if route is not None and len(route) > 1:
             ax.plot(*up_vertical(route, up).T, color="0.35", lw=0.7, label="path" if n == 1 else None)
     along = set(along)
+    # The first of each kind names it in the legend.
+    chosen = [n for n in range(initial, len(captured)) if n not in along]
+    firsts = {min(chosen, default=None): "captured (colour: order)", min(along, default=None): "along the way",
+              0 if initial else None: "initial (random)"}
     for n, idx in enumerate(captured):
         p, f = pos[idx], fwd[idx]
         ax.scatter(*p, s=12 if n in along else 28, color=colours[n],
                    marker="s" if n < initial else "^" if n in along else "o", depthshade=False,
-                   label=("initial (random)" if n == 0 and initial else
-                          "captured (colour: order)" if n == initial else
-                          "along the way" if along and n == min(along) else None))
+                   label=firsts.get(n))
         if n in along:
             continue
         ax.plot(*np.stack([p, p + arrow * f]).T, color=colours[n], lw=1.2)

@@ -1,6 +1,5 @@
 """Views along the way and continuous candidates: spacing, reachability, held-out disjointness, resume."""
 
-import json
 
 import numpy as np
 import pytest
@@ -103,7 +102,6 @@ def test_continuous_candidates_are_reachable_and_apart_from_the_heldout_views(sp
     assert np.allclose(surface.centre, source.scene.center, atol=1e-6)
     assert np.allclose(surface.axes, radius, rtol=1e-6)
     drone = make_embodiment("drone", source.scene)
-    # A scene whose rig runs inside the ball: the drone reaches none of those poses.
     sampler = PoseSampler(surface, drone, source.heldout, source.scene.free_space)
     cams = sampler.sample(np.random.default_rng(0), 30)
     pos = np.stack([c.position for c in cams])
@@ -116,7 +114,7 @@ def test_continuous_candidates_are_reachable_and_apart_from_the_heldout_views(sp
     gaps = np.linalg.norm(np.stack([c.position for c in near]) - cams[0].position, axis=1)
     assert near and gaps.max() < 0.5 * radius * surface.spacing * 4
     # A rig shrunk inside the ball: every pose is inside it, and none is offered.
-    inside = RigSurface([c for c in source.candidates], source.scene.up)
+    inside = RigSurface(source.candidates, source.scene.up)
     inside.axes = np.full(3, 0.3)
     assert PoseSampler(inside, drone, source.heldout, source.scene.free_space).sample(
         np.random.default_rng(0), 10) == []

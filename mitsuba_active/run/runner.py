@@ -28,6 +28,7 @@ from tqdm import tqdm
 
 from .. import __version__
 from ..cameras import Camera, look_at, snapped_up
+from ..continuous import PoseSampler, RigSurface, choose_fresh
 from ..datasets import DatasetSource
 from ..embodiments import make_embodiment
 from ..env import ActiveViewEnv, SceneSource
@@ -40,7 +41,6 @@ from ..planners.base import planner_digest, planner_label, planner_rng, unseen
 from ..protocol import evaluate_views, new_field
 from ..report import contact_sheet, plot_metrics, plot_views
 from ..training import evaluation_note, has_distances, predict_view, scores_line, sparse_candidate_rays, train_on
-from ..continuous import PoseSampler, RigSurface, choose_fresh
 from ..travel import Journey, diameter_of, stops_along
 from ..travelplots import plot_travel
 from ..webpage import REPORT_FILE, write_run_page
@@ -138,7 +138,6 @@ class Run:
         self.journey = Journey(make_embodiment(cfg.embodiment, getattr(source, "scene", None), cfg.speed), cfg,
                                [c.to_world[:3, 3] for c in source.candidates],
                                diameter_of(source.bbox_min, source.bbox_max))
-        self.pool_size = len(source.candidates)  # cameras the run adds come after these
         self.sampler = None
         if cfg.candidates_mode == "continuous":
             self.sampler = PoseSampler(RigSurface(source.candidates, source.scene.up), self.journey.embodiment,

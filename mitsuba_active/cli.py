@@ -43,7 +43,7 @@ with interruptible_imports():  # click, numpy and the libraries below load here,
     from .scenes import BUNDLED_SCENE
     from .sources import SceneSource
     from .training import FIT_GAIN_DB, FLOOR_MARGIN_DB
-    from .travel import TRAVEL_SETTINGS
+    from .travel import CANDIDATE_MODES, TRAVEL_SETTINGS
     from .viewer import serve
 
 
@@ -247,7 +247,8 @@ def _rig_options(fn):
 def _travel_options(fn):
     """plan's options of :data:`~mitsuba_active.travel.TRAVEL_SETTINGS`, named as the settings are."""
     for name, (default, text) in reversed(TRAVEL_SETTINGS.items()):
-        kind = _Choice(list(EMBODIMENTS)) if name == "embodiment" else float
+        kind = {"embodiment": _Choice(list(EMBODIMENTS)), "candidates_mode": _Choice(list(CANDIDATE_MODES))}.get(
+            name, float)
         fn = click.option(f"--{name.replace('_', '-')}", name, type=kind, default=default,
                           show_default=default is not None, help=text)(fn)
     return fn

@@ -231,6 +231,16 @@ class ActiveViewEnv(gym.Env):
         cam = known[0] if known else Camera(pose, ref.fov, ref.width, ref.height, ref.near, ref.far)
         return self._obs(self.source.render(cam))
 
+    def add_candidate(self, camera: Camera) -> int:
+        """Make ``camera`` one more candidate, rendered by the source when captured; its index.
+        The source's candidate list grows: give the environment a source of its own."""
+        if (camera.height, camera.width) != self.shape:
+            raise ValueError(f"a new candidate must be {self.shape[1]}x{self.shape[0]} pixels as the others, "
+                             f"not {camera.width}x{camera.height}")
+        self.source.candidates.append(camera)
+        self.action_space = spaces.Discrete(len(self.source.candidates))
+        return len(self.source.candidates) - 1
+
     def restore(self, captured: list[int]) -> None:
         """Start over with exactly these candidates captured, in order (to resume a run);
         repeats only where ``allow_repeats``."""

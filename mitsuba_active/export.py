@@ -37,6 +37,7 @@ from .errors import FolderError, UserError, first_line
 from .imageio_utils import atomic_write, new_entries, read_exr, remove_new, srgb_to_linear, write_exr, write_png
 from .interrupts import interrupts_deferred
 from .run import RunConfig, read_record
+from .run.record import run_cameras
 
 #: The names of the files an export writes beside its JSON files.
 _WRITTEN = re.compile(r"(images|masks)/(view|heldout)_\d{3,}\.png|distance/(view|heldout)_\d{3,}\.exr")
@@ -78,7 +79,7 @@ def export_transforms(run_dir, out_dir=None) -> Path:
         raise UserError(f"{run_dir} is not a run folder (no run.json)")
     rec = read_record(rec_path)
     out = Path(out_dir) if out_dir else run_dir / "export"
-    cams = [Camera.from_dict(rec["candidates"][i]) for i in rec["captured"]]
+    cams = [Camera.from_dict(run_cameras(rec)[i]) for i in rec["captured"]]
     if not cams:
         raise UserError(f"{run_dir} has no captured views to export")
     if not rec["finished"]:

@@ -113,17 +113,20 @@ def up_vertical(points, up=(0.0, 1.0, 0.0)) -> np.ndarray:
 
 
 def plot_views(candidates, captured, heldout, bbox_min, bbox_max, path, up=(0.0, 1.0, 0.0),
-               initial: int = 0, title: str = "") -> Path:
+               initial: int = 0, title: str = "", routes=None, along=()) -> Path:
     """Where the cameras are: a 3D plot of camera positions, ``up`` vertical.
 
     Candidates are grey dots, held-out views blue crosses, and captured views are
     coloured by capture order (the first ``initial`` ones, chosen at random, as
     squares), each with its capture number and a short line along its viewing
-    direction; the scene's bounding box is a wireframe.
+    direction; the scene's bounding box is a wireframe. A moving camera's path between the
+    captures is a thin line (``routes``), views captured along the way small triangles.
 
     Args:
         candidates, heldout: :class:`~mitsuba_active.cameras.Camera` lists.
         captured: candidate indices in capture order (repeats allowed).
+        routes: the way to each capture, (N, 3) scene units, in capture order (None: not drawn).
+        along: capture numbers of the views taken along the way.
         bbox_min, bbox_max: (3,) scene bounds in scene units.
     """
     plt = _plt()
@@ -145,11 +148,21 @@ def plot_views(candidates, captured, heldout, bbox_min, bbox_max, path, up=(0.0,
     everything = np.concatenate([pos, held, corners])
     arrow = 0.08 * float(np.ptp(everything, axis=0).max())
     colours = plt.get_cmap("viridis")(np.linspace(0.0, 1.0, max(len(captured), 1)))
+    for n, route in enumerate(routes or ()):
+        if route is not None and len(route) > 1:
+            ax.plot(*up_vertical(route, up).T, color="0.35", lw=0.7, label="path" if n == 1 else None)
+    along = set(along)
+    # The first of each kind names it in the legend.
+    chosen = [n for n in range(initial, len(captured)) if n not in along]
+    firsts = {min(chosen, default=None): "captured (colour: order)", min(along, default=None): "along the way",
+              0 if initial else None: "initial (random)"}
     for n, idx in enumerate(captured):
         p, f = pos[idx], fwd[idx]
-        ax.scatter(*p, s=28, color=colours[n], marker="s" if n < initial else "o", depthshade=False,
-                   label=("initial (random)" if n == 0 and initial else
-                          "captured (colour: order)" if n == initial else None))
+        ax.scatter(*p, s=12 if n in along else 28, color=colours[n],
+                   marker="s" if n < initial else "^" if n in along else "o", depthshade=False,
+                   label=firsts.get(n))
+        if n in along:
+            continue
         ax.plot(*np.stack([p, p + arrow * f]).T, color=colours[n], lw=1.2)
         ax.text(*(p + 0.3 * arrow), str(n), fontsize=7)
     centre, half = everything.mean(axis=0), 0.5 * float(np.ptp(everything, axis=0).max())

@@ -31,7 +31,15 @@ TRAVEL_SETTINGS = {
     "speed": (1.0, "Camera speed in scene units per second."),
     "capture_time": (0.0, "Seconds each capture takes."),
     "cost_weight": (0.0, "Weight of the travel cost against the planner's utility (0: cost-blind)."),
+    "along_the_way": (None, "Also capture a view every this many scene units along each route, looking at the "
+                            "scene's centre; they count as views [off]."),
+    "candidates_mode": ("pool", "pool: choose from the rig's fixed candidates; continuous: score a fresh sample of "
+                                "reachable poses on the rig each round (as many as --candidates), refine around "
+                                "the best, capture it (scenes only)."),
 }
+
+#: The ways a planner is offered poses (``candidates_mode``).
+CANDIDATE_MODES = ("pool", "continuous")
 
 
 def travel_problems(cfg) -> list[str]:
@@ -45,12 +53,20 @@ def travel_problems(cfg) -> list[str]:
             problems.append(f"{name} must be a positive number, got {value!r}")
     if not (is_number(cfg.speed, finite=True) and cfg.speed > 0):
         problems.append(f"the speed must be a positive number, got {cfg.speed!r}")
+    if cfg.along_the_way is not None and not (is_number(cfg.along_the_way, finite=True) and cfg.along_the_way > 0):
+        problems.append(f"along_the_way must be a positive spacing in scene units, got {cfg.along_the_way!r}")
+    if not isinstance(cfg.candidates_mode, str) or cfg.candidates_mode not in CANDIDATE_MODES:
+        problems.append(unknown_choice("candidates mode", cfg.candidates_mode, CANDIDATE_MODES))
+    if cfg.candidates_mode == "continuous" and getattr(cfg, "rig", None) == "xml":
+        problems.append("candidates_mode continuous (--candidates-mode) samples the rig's surface, and --rig xml "
+                        "has none (choose a generated rig)")
     for name in ("capture_time", "cost_weight"):
         value = getattr(cfg, name)
         if not (is_number(value, finite=True) and value >= 0):
             problems.append(f"{name} must be a finite number >= 0, got {value!r}")
     if not problems and cfg.embodiment == "teleport":
-        for name, flag in (("travel_budget", "--travel-budget"), ("cost_weight", "--cost-weight")):
+        for name, flag in (("travel_budget", "--travel-budget"), ("cost_weight", "--cost-weight"),
+                           ("along_the_way", "--along-the-way")):
             if getattr(cfg, name):  # it would change nothing: a teleport travels no distance
                 problems.append(f"{name} ({flag}) applies to a moving embodiment; a teleport travels nowhere "
                                 "(choose --embodiment drone)")
@@ -119,6 +135,11 @@ class Journey:
                            f"{time_budget - self.time:.4g} of the time budget's {time_budget:g} s are left")
         return route, None
 
+    def add(self, position: np.ndarray) -> int:
+        """Make ``position`` (3,) the next candidate's (one the run appended); its index."""
+        self.positions = np.concatenate([self.positions, np.asarray(position, dtype=np.float64).reshape(1, 3)])
+        return len(self.positions) - 1
+
     def advance(self, index: int, route: Route) -> None:
         """Move to candidate ``index`` along ``route`` and capture there."""
         self.position = self.positions[index]
@@ -138,22 +159,26 @@ class Journey:
         self.position = self.positions[captured[-1]] if captured else None
 
     # -- cost-aware choice ------------------------------------------------------
-    def weigh(self, picks: list[int], scores: np.ndarray | None, allowed: np.ndarray) -> list[int]:
+    def weigh(self, picks: list[int], scores: np.ndarray | None, allowed: np.ndarray,
+              positions: np.ndarray | None = None) -> list[int]:
         """The batch to capture, in the order of a short tour.
 
         With a cost weight and the planner's ``scores`` (C,), the picks are
         chosen again, one at a time, by utility less weighted travel cost
         among ``allowed`` (C,) bool candidates (from the round's scores: a
         planner's own batch conditioning, as fisher's, is not kept); else the
-        planner's picks stay.
+        planner's picks stay. ``positions`` (C, 3): the candidates' positions when the planner was
+        offered others than the journey's (continuous candidates).
         """
         lam = self.cfg.cost_weight
+        positions = self.positions if positions is None else np.asarray(positions, dtype=np.float64)
         if lam > 0 and scores is not None and self.position is not None:
-            weighed = self._weighed(len(picks), scores, allowed.copy(), lam)
+            weighed = self._weighed(len(picks), scores, allowed.copy(), lam, positions)
             picks = weighed if len(weighed) == len(picks) else picks  # too few scored: the planner's stay
-        return self._tour(picks)
+        return self._tour(picks, positions)
 
-    def _weighed(self, batch: int, scores: np.ndarray, allowed: np.ndarray, lam: float) -> list[int]:
+    def _weighed(self, batch: int, scores: np.ndarray, allowed: np.ndarray, lam: float,
+                 positions: np.ndarray) -> list[int]:
         utility = np.where(allowed & np.isfinite(scores), scores, np.nan)
         if np.isnan(utility).all():
             return []
@@ -164,27 +189,61 @@ class Journey:
             idx = np.nonzero(~np.isnan(utility))[0]
             if not len(idx):
                 break
-            lengths = np.array([r.length for r in self.embodiment.paths(here, self.positions[idx])])
+            lengths = np.array([r.length for r in self.embodiment.paths(here, positions[idx])])
             value = utility[idx] - lam * lengths / self.diameter
             best = int(idx[np.argmax(value)])
             picks.append(best)
             utility[best] = np.nan
-            here = self.positions[best]
+            here = positions[best]
         return picks
 
-    def _tour(self, picks: list[int]) -> list[int]:
+    def _tour(self, picks: list[int], positions: np.ndarray) -> list[int]:
         """``picks`` reordered as a nearest-next tour from the camera's position (straight-line distances)."""
         if self.position is None or len(picks) < 2 or self.embodiment.name == "teleport":
             return list(picks)
         left, order, here = list(picks), [], self.position
         while left:
-            k = int(np.argmin([np.linalg.norm(self.positions[i] - here) for i in left]))
+            k = int(np.argmin([np.linalg.norm(positions[i] - here) for i in left]))
             order.append(left.pop(k))
-            here = self.positions[order[-1]]
+            here = positions[order[-1]]
         return order
+
+
+def along_the_way(route: Route, spacing: float, speed: float) -> list[Route]:
+    """``route`` cut every ``spacing`` scene units: the pieces from its start to each stop
+    and, last, on to its end (a stop at the very end is the capture there, not one more).
+    Each piece's end is a stop; ``speed`` (scene units per second) times them."""
+    points = np.asarray(route.points, dtype=np.float64)
+    if not route.found or route.length <= 0:
+        return [route]
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    at = np.concatenate([[0.0], np.cumsum(seg)])  # arc length at each point
+    stops = np.arange(1, int(np.ceil(route.length / spacing))) * spacing
+    stops = stops[stops < route.length - 1e-9 * max(route.length, 1.0)]
+    pieces, start_arc, start = [], 0.0, points[0]
+    for s in list(stops) + [route.length]:
+        k = int(np.clip(np.searchsorted(at, s, side="right") - 1, 0, len(seg) - 1))
+        t = (s - at[k]) / seg[k] if seg[k] > 0 else 0.0
+        end = points[k] + t * (points[k + 1] - points[k])
+        inner = points[(at > start_arc + 1e-12) & (at < s - 1e-12)]
+        piece = np.concatenate([[start], inner, [end]])
+        pieces.append(Route(piece, s - start_arc, (s - start_arc) / speed))
+        start_arc, start = s, end
+    return pieces
 
 
 def diameter_of(bbox_min, bbox_max) -> float:
     """The scene's diameter (scene units): its bounding box's diagonal."""
     d = float(np.linalg.norm(np.asarray(bbox_max, float) - np.asarray(bbox_min, float)))
     return d if d > 0 and math.isfinite(d) else 1.0
+
+
+def stops_along(route: Route, spacing: float, speed: float, room: int) -> tuple[list[Route], Route]:
+    """The pieces of ``route`` (:func:`along_the_way`) that end at the first ``room`` stops, and
+    the rest of the route from the last of them to its end."""
+    pieces = along_the_way(route, spacing, speed)
+    stops = pieces[:-1][:max(room, 0)]
+    rest = pieces[len(stops):]
+    points = np.concatenate([rest[0].points] + [p.points[1:] for p in rest[1:]])
+    length = float(sum(p.length for p in rest))
+    return stops, Route(points, length, length / speed)

@@ -38,15 +38,20 @@ def plot_travel(record: dict, out_dir, title: str = "") -> list[Path]:
         written.append(_save(fig, Path(out_dir) / "psnr_travel.png"))
     routes = [np.asarray(leg["route"], dtype=float) for leg in legs if leg.get("route")]
     if routes:
+        # Captures of cameras the run added along a route (its record's "added", after the candidates).
+        base, added = len(record.get("candidates") or ()), record.get("added") or ()
+        along = [n for n, i in enumerate(record.get("captured") or ())
+                 if i >= base and added[i - base].get("kind") == "along the way"]  # run.record.ALONG_THE_WAY
         written.append(plot_route(routes, record.get("bbox"), Path(out_dir) / "route.png",
                                   up=record.get("up") if record.get("up") is not None else (0.0, 1.0, 0.0),
-                                  title=title))
+                                  title=title, along=along))
     return written
 
 
-def plot_route(routes: list[np.ndarray], bbox, path, up=(0.0, 1.0, 0.0), title: str = "") -> Path:
+def plot_route(routes: list[np.ndarray], bbox, path, up=(0.0, 1.0, 0.0), title: str = "", along=()) -> Path:
     """The route between captures seen from above (along ``up``): each leg's points
-    (N, 3) scene units as a line, the captures numbered; ``bbox`` (2, 3) as a rectangle."""
+    (N, 3) scene units as a line, the captures numbered, those in ``along`` (capture numbers
+    of views along the way) as small triangles; ``bbox`` (2, 3) as a rectangle."""
     plt = _plt()
     up = np.asarray(up, dtype=float)
     keep = [i for i in range(3) if i != int(np.argmax(np.abs(up)))]  # the two axes across up
@@ -58,7 +63,10 @@ def plot_route(routes: list[np.ndarray], bbox, path, up=(0.0, 1.0, 0.0), title: 
     for n, (route, color) in enumerate(zip(routes, colors)):
         xy = route[:, keep]
         ax.plot(xy[:, 0], xy[:, 1], color=color, lw=1.5)
-        ax.annotate(str(n + 1), xy[-1], fontsize=7)
+        if n in along:
+            ax.plot(*xy[-1], marker="^", ms=4, color=color)
+        else:
+            ax.annotate(str(n + 1), xy[-1], fontsize=7)
     first = routes[0][0, keep]
     ax.plot(*first, marker="s", color="k")
     ax.set_aspect("equal")

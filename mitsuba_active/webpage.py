@@ -85,7 +85,8 @@ def _camera_entry(cam: Camera, up) -> dict:
 
 def camera_scene(rec: dict) -> dict:
     """What the page's 3D view draws, from a run record: cameras, bounds, captures and each round's scores."""
-    candidates = [Camera.from_dict(c) for c in rec["candidates"]]
+    # With the cameras the run added (views along the way, continuous candidates): captured indices name them.
+    candidates = [Camera.from_dict(c) for c in rec["candidates"] + [a["camera"] for a in rec.get("added", ())]]
     heldout = [Camera.from_dict(c) for c in rec["heldout"]]
     up = snapped_up(candidates)
     bbox = rec.get("bbox")

@@ -1,6 +1,7 @@
 import json
 import re
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -123,6 +124,24 @@ def test_tables_state_the_seed_count_and_mark_cells_with_fewer_seeds():
     # One seed has no standard error to show.
     md, _ = _table({"cells": [cell("rfe", 1), cell("even", 1)]}, ["a"], ["rfe", "even"], "psnr", "PSNR")
     assert "One seed (no standard error), at" in md and "| 21.00 |" in md and "±" not in md
+
+
+def test_tables_of_a_travel_budget_report_where_it_ends():
+    from mitsuba_active.bench import _table, metric_at
+    from mitsuba_active.bench.stats import travel_budgeted
+
+    stopped = {"metrics": [{"views": 10, "psnr": 20.0}, {"views": 13, "psnr": 21.0}], "stopped": {"views": 13}}
+    whole = {"metrics": [{"views": 10, "psnr": 20.0}, {"views": 20, "psnr": 23.0}]}
+    assert metric_at(stopped, "psnr", 20) is None and metric_at(stopped, "psnr", 20, at_end=True) == 21.0
+    assert metric_at(stopped, "psnr", 10, at_end=True) == 20.0  # a count it reached: its own
+    assert metric_at(whole, "psnr", 20, at_end=True) == 23.0
+    assert travel_budgeted([SimpleNamespace(config={"travel_budget": 3.0})])
+    assert not travel_budgeted([SimpleNamespace(config={"travel_budget": None})])
+    st = {"iqm": 21.0, "se": 0.1, "n": 3}
+    cells = {"cells": [{"scene": "a", "planner": "rfe", "seeds": 3, **{f"psnr@{v}": st for v in (10, 20)}}],
+             "table_views": [10, 20], "budget_end_column": 20}
+    md, _ = _table(cells, ["a"], ["rfe"], "psnr", "PSNR")
+    assert "| a @10 | a @end (20) |" in md and "the end of the travel budget (at most 20 views" in md
 
 
 def test_scene_means_margins_and_wins_by_hand():

@@ -56,7 +56,12 @@ def unreported_seeds(jobs: list[Job]) -> list[int]:
     return sorted(found)
 
 
-def metric_at(rec: dict, metric: str, views: int):
+def metric_at(rec: dict, metric: str, views: int, at_end: bool = False):
+    """A run's ``metric`` at ``views`` captured (None: not evaluated there); ``at_end``: at its
+    last evaluation where its travel or time budget stopped it before ``views``."""
+    stopped = rec.get("stopped")
+    if at_end and isinstance(stopped, dict) and isinstance(stopped.get("views"), int) and stopped["views"] < views:
+        views = stopped["views"]
     for m in rec["metrics"]:
         if m["views"] == views and m.get(metric) is not None:
             return m[metric]
@@ -72,6 +77,12 @@ def usable(value) -> bool:
 def summarize(values) -> dict:
     vals = [v for v in values if usable(v)]
     return {"iqm": iqm(vals) if vals else None, "se": standard_error(vals) if vals else None, "n": len(vals)}
+
+
+def travel_budgeted(jobs: list[Job]) -> bool:
+    """Whether the suite's runs have a travel or time budget: its tables' last column is then
+    the metric where the budget ends (a run it stops early, at its last view)."""
+    return any(j.config.get("travel_budget") is not None or j.config.get("time_budget") is not None for j in jobs)
 
 
 def table_views(jobs: list[Job]) -> tuple:

@@ -14,7 +14,7 @@ from ..training import weak_evaluation
 from ..webpage import REPORT_FILE, write_run_page, write_suite_page
 from .jobs import Job, finished_record
 from .stats import (BASELINES, METRICS, TABLE_VIEWS, collect, metric_at, scene_means, summarize, table_views,
-                    unreported_seeds)
+                    travel_budgeted, unreported_seeds)
 from .suite import SUMMARY, Suite
 
 #: Metrics of the plots, and those of the summary plot over scenes.
@@ -31,9 +31,11 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
     scenes = [s.name for s in suite.scenes if s.name in data]
     planners = [p for p in dict.fromkeys(j.planner for j in jobs)]
     views = table_views(jobs)
+    end = max(views) if travel_budgeted(jobs) else None  # the column where a travel budget ends runs
     reported = [r for by_planner in data.values() for recs in by_planner.values() for r in recs]
     summary = {"suite": suite.name, "profile": profile, "overrides": overrides or {},
                "table_views": list(views), "runs": len(jobs), "runs_reported": len(reported),
+               "budget_end_column": end,
                "unreported_seeds": unreported_seeds(jobs),
                # Runs whose evaluation fields scored near the background alone, or barely fit their own views.
                "short_training": sum(any(weak_evaluation(m) for m in r["metrics"]) for r in reported),
@@ -51,9 +53,9 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
                     "planning_seconds": summarize([r.get("planning_seconds") for r in recs])}
             for metric in METRICS:
                 for v in views:
-                    cell[f"{metric}@{v}"] = summarize([metric_at(r, metric, v) for r in recs])
+                    cell[f"{metric}@{v}"] = summarize([metric_at(r, metric, v, v == end) for r in recs])
             # Each seed's values, for comparisons over the seeds two planners share.
-            cell["per_seed"] = {str(r["config"]["seed"]): {f"{metric}@{v}": metric_at(r, metric, v)
+            cell["per_seed"] = {str(r["config"]["seed"]): {f"{metric}@{v}": metric_at(r, metric, v, v == end)
                                                           for metric in METRICS for v in views} for r in recs}
             summary["cells"].append(cell)
     # The report is written whole into a new folder that then replaces the earlier one:
@@ -68,7 +70,7 @@ def write_report(suite: Suite, jobs: list[Job], report_dir: Path, profile: str, 
             tables.append(md)
         note = _overrides_note(summary["overrides"])
         tables.insert(0, "\n".join(
-            _mean_table(summary["mean_over_scenes"][m], planners, *METRICS[m], views=views, note=note)
+            _mean_table(summary["mean_over_scenes"][m], planners, *METRICS[m], views=views, note=note, end=end)
             for m in METRICS))
         (folder / "table_mean.md").write_text(tables[0])
         (folder / "results.json").write_text(json.dumps(summary, indent=1))
@@ -168,8 +170,14 @@ def _table(summary: dict, scenes, planners, metric: str, title: str):
         stat = "One seed (no standard error)"
     else:
         stat = f"Interquartile mean ± standard error of the mean over {n} seeds"
-    head = ["planner"] + [f"{s} @{v}" for s in scenes for v in views] + ["planning (s)", "wall time (s)"]
-    lines = [f"## {title}", "", f"{stat}, at " + " and ".join(map(str, views)) + " views captured. "
+    end = summary.get("budget_end_column")
+    named = {v: f"end ({v})" if v == end else str(v) for v in views}
+    head = ["planner"] + [f"{s} @{named[v]}" for s in scenes for v in views] + ["planning (s)", "wall time (s)"]
+    at = " and ".join(map(str, views)) + " views captured"
+    if end is not None:
+        at = (" and ".join(str(v) for v in views if v != end) + " views captured and " if len(views) > 1 else "") + \
+            f"the end of the travel budget (at most {end} views: a run it stops sooner at its last view)"
+    lines = [f"## {title}", "", f"{stat}, at {at}. "
              "Times are means over scenes of each cell's interquartile mean: planning is the time spent "
              "choosing views and training the planner's ensemble; wall time is the whole run, with ground "
              "truth (cached renders are fast) and evaluation." + _overrides_note(summary.get("overrides") or {}),
@@ -195,12 +203,15 @@ def _table(summary: dict, scenes, planners, metric: str, title: str):
 
 
 def _mean_table(means: dict, planners, title: str, higher_is_better: bool = True, views=TABLE_VIEWS,
-                note: str = "") -> str:
+                note: str = "", end: int | None = None) -> str:
     """Markdown of :func:`scene_means`: means, and margins over the baselines with scenes won
-    (``note``: a sentence added to the caption)."""
+    (``note``: a sentence added to the caption; ``end``: the view count whose column is where
+    a travel budget ends runs)."""
     n = max((r["scenes"] for r in means.values()), default=0)
     baselines = [b for b in BASELINES if any(f"vs_{b}@{v}" in r for r in means.values() for v in views)]
-    head = ["planner"] + [f"mean @{v}" for v in views] + [f"vs {b} @{v}" for b in baselines for v in views]
+    named = {v: f"end ({v})" if v == end else str(v) for v in views}
+    head = ["planner"] + [f"mean @{named[v]}" for v in views] + [f"vs {b} @{named[v]}" for b in baselines
+                                                                 for v in views]
     better = "higher" if higher_is_better else "lower"
     intro = f"Mean over {n} scene{'' if n == 1 else 's'} of each cell's interquartile mean ({better} is better)"
     if baselines:

@@ -46,6 +46,10 @@ class RunConfig:
             (e.g. ``{"n_samples": 32}``), for the planner's ensemble and the evaluation field alike.
         embodiment, travel_budget, time_budget, speed, capture_time, cost_weight: how the camera
             moves and what its travel may cost (:data:`~mitsuba_active.travel.TRAVEL_SETTINGS`).
+        along_the_way: spacing (scene units) of the views a moving camera also captures along
+            each route, looking at the scene's centre (None: none).
+        candidates_mode: ``pool`` (the rig's fixed candidates) or ``continuous`` (a fresh
+            sample of reachable poses on the rig each round, refined around the best).
     """
 
     scene: str = ""
@@ -77,6 +81,8 @@ class RunConfig:
     speed: float = TRAVEL_SETTINGS["speed"][0]
     capture_time: float = TRAVEL_SETTINGS["capture_time"][0]
     cost_weight: float = TRAVEL_SETTINGS["cost_weight"][0]
+    along_the_way: float | None = TRAVEL_SETTINGS["along_the_way"][0]
+    candidates_mode: str = TRAVEL_SETTINGS["candidates_mode"][0]
 
     def __post_init__(self):
         if isinstance(self.scene, os.PathLike):  # run.json holds it as text

@@ -31,7 +31,8 @@ RECORD_PARTS = {"config": dict, "candidates": list, "heldout": list, "captured":
                 # ---
                 "rounds": list, "versions": dict, "rng_state": dict, "planner_options": dict, "distances": bool,
                 "bbox": list, "budget_changes": list, "resumed_with": list, "ensemble_file": str,
-                "candidate_files": list, "heldout_files": list, "travel": list, "stopped": dict}
+                "candidate_files": list, "heldout_files": list, "travel": list, "stopped": dict,
+                "added": list}
 REQUIRED_PARTS = ("config", "candidates", "heldout", "captured", "metrics", "finished")
 
 
@@ -73,7 +74,12 @@ def read_record(path) -> dict:
         files = rec.get(key)
         if files is not None and not (len(files) == len(rec[cams]) and all(isinstance(f, str) for f in files)):
             raise damaged(f"its {key} are not the file names of its {len(rec[cams])} {cams}")
-    n = len(rec["candidates"])
+    try:
+        for added in rec.get("added", ()):
+            Camera.from_dict(added["camera"])
+    except (UserError, TypeError, KeyError) as exc:
+        raise damaged(f"one of its added cameras: {exc}") from None
+    n = len(run_cameras(rec))
     if not all(is_whole(i) and 0 <= i < n for i in rec["captured"]):
         raise damaged(f"its captured views are not indices of its {n} candidates")
     # Its views on disk are the captured ones in order: a list edited by hand would pair them with other poses.
@@ -110,6 +116,23 @@ def read_record(path) -> dict:
                                                                    for corner in bbox for v in corner)):
         raise damaged(f"its bbox is {bbox!r}, not two corners of three numbers")
     return rec
+
+
+def run_cameras(rec: dict) -> list[dict]:
+    """The cameras a record's captured indices name: its candidates, then the cameras the run
+    added (views along the way, continuous candidates), as ``to_dict()`` dicts."""
+    return list(rec["candidates"]) + [a["camera"] for a in rec.get("added", ())]
+
+
+def along_the_way_views(rec: dict) -> list[int]:
+    """The view numbers (positions in ``captured``) of a record's views captured along the way."""
+    base, added = len(rec["candidates"]), rec.get("added", ())
+    return [n for n, i in enumerate(rec["captured"])
+            if i >= base and added[i - base].get("kind") == ALONG_THE_WAY]
+
+
+#: The ``kind`` of an added camera captured along a route, and of one a continuous round offered.
+ALONG_THE_WAY, CONTINUOUS = "along the way", "continuous"
 
 
 def json_default(o):

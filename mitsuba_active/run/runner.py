@@ -12,6 +12,7 @@ after every round, so an interrupted run resumes where it stopped.
 
 from __future__ import annotations
 
+import copy
 import csv
 import json
 import math
@@ -26,7 +27,8 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import __version__
-from ..cameras import snapped_up
+from ..cameras import Camera, look_at, snapped_up
+from ..continuous import PoseSampler, RigSurface, choose_fresh
 from ..datasets import DatasetSource
 from ..embodiments import make_embodiment
 from ..env import ActiveViewEnv, SceneSource
@@ -39,11 +41,11 @@ from ..planners.base import planner_digest, planner_label, planner_rng, unseen
 from ..protocol import evaluate_views, new_field
 from ..report import contact_sheet, plot_metrics, plot_views
 from ..training import evaluation_note, has_distances, predict_view, scores_line, sparse_candidate_rays, train_on
-from ..travel import Journey, diameter_of
+from ..travel import Journey, diameter_of, stops_along
 from ..travelplots import plot_travel
 from ..webpage import REPORT_FILE, write_run_page
 from .config import RunConfig, source_field_config
-from .record import RUN_FORMAT, json_default
+from .record import ALONG_THE_WAY, CONTINUOUS, RUN_FORMAT, along_the_way_views, json_default
 from .resume import ends_short_of_a_batch, read_resumable_record, resume_obstacles, other_settings
 
 
@@ -124,6 +126,8 @@ class Run:
         if unlike:
             raise UserError(f"the run's settings do not describe its view source: {'; '.join(unlike)} "
                             "(make the source with RunConfig.open_source())")
+        if cfg.along_the_way is not None or cfg.candidates_mode == "continuous":
+            source = self._own_source(source, cfg)
         self.source, self.cfg, self.out = source, cfg, Path(out_dir)
         self.progress, self.log, self.notes = progress, log, tuple(notes)
         self.planner = make_planner(cfg.planner, **cfg.planner_options)
@@ -134,11 +138,35 @@ class Run:
         self.journey = Journey(make_embodiment(cfg.embodiment, getattr(source, "scene", None), cfg.speed), cfg,
                                [c.to_world[:3, 3] for c in source.candidates],
                                diameter_of(source.bbox_min, source.bbox_max))
+        self.sampler = None
+        if cfg.candidates_mode == "continuous":
+            self.sampler = PoseSampler(RigSurface(source.candidates, source.scene.up), self.journey.embodiment,
+                                       source.heldout, source.scene.free_space)
         self.rng = planner_rng(cfg.seed)
         self.record = None
         self.ensemble = None
         self._warned_fit = False
         self._budget_was = None  # the budget of the run in the folder, where this one differs
+
+    @staticmethod
+    def _own_source(source, cfg: RunConfig):
+        """A copy of a scene source whose candidate list the run may add cameras to; UserError for a
+        source that cannot render new poses."""
+        flag = "--along-the-way" if cfg.along_the_way is not None else "--candidates-mode continuous"
+        if not isinstance(source, SceneSource):
+            raise UserError(f"{flag} renders new poses, which only a scene can; {source.name} is a dataset "
+                            "of captured frames")
+        mine = copy.copy(source)
+        mine.candidates = list(source.candidates)
+        return mine
+
+    def _add_camera(self, camera, kind: str, record: bool = True) -> int:
+        """Make ``camera`` a candidate of the run (``kind``: why it was added); its index."""
+        index = self.env.add_candidate(camera)
+        self.journey.add(camera.position)
+        if record:
+            self.record.setdefault("added", []).append({"camera": camera.to_dict(), "kind": kind})
+        return index
 
     # -- persistence --------------------------------------------------------
     @property
@@ -304,6 +332,8 @@ class Run:
             return self.record
         if resumed:
             self.env.reset(seed=cfg.seed, options={"initial_views": 0})
+            for added in self.record.get("added", ()):  # the cameras it added, at the indices it gave them
+                self._add_camera(Camera.from_dict(added["camera"]), added["kind"], record=False)
             self.env.restore(self.record["captured"])
             self.journey.restore(self.record["captured"], self.record.get("travel"))
             if self.record["captured"]:
@@ -354,8 +384,14 @@ class Run:
                 break
             b = min(cfg.batch, cfg.budget - len(self.env.captured))
             t0 = time.perf_counter()
-            picks, scores = self.planner.checked_select(state, b)
-            picks = self.journey.weigh(picks, scores, unseen(state))
+            if self.sampler is not None:
+                picks, scores = self._select_continuous(state, b)
+            else:
+                if state.candidate_rays is not None and len(state.candidate_rays[0]) != len(state.candidates):
+                    state.candidate_rays = sparse_candidate_rays(state.candidates, cfg.rays_per_candidate,
+                                                                 cfg.seed + 1)  # with the cameras added
+                picks, scores = self.planner.checked_select(state, b)
+                picks = self.journey.weigh(picks, scores, unseen(state))
             t_select = time.perf_counter() - t0
             picks = self._travel_to(picks)
             if not picks:
@@ -364,13 +400,15 @@ class Run:
             if self.ensemble is not None:
                 # With no initial views the ensemble meets its first data here.
                 first = cfg.initial_steps if len(self.env.captured) == len(picks) else 0
-                train_on(self.ensemble, self.env.views, first + cfg.steps_per_view * b)
+                train_on(self.ensemble, self.env.views, first + cfg.steps_per_view * len(picks))
             self.record["captured"] = list(self.env.captured)
             self.record["rounds"].append({
                 "views": len(self.env.captured), "picks": [int(i) for i in picks],
                 "poses": [self.source.candidates[int(i)].to_world.tolist() for i in picks],
                 # JSON has no inf or NaN: a score that is not finite is written as null.
-                "scores": None if scores is None else [float(s) if math.isfinite(s) else None for s in scores],
+                # Continuous rounds score poses that are not the run's cameras: none are kept.
+                "scores": None if scores is None or self.sampler is not None else
+                [float(s) if math.isfinite(s) else None for s in scores],
                 "select_seconds": round(t_select, 4), "train_seconds": round(time.perf_counter() - t1, 4),
                 "travel": self.journey.legs[-len(picks):]})
             self._add_planning_time(t_select + time.perf_counter() - t1)
@@ -382,6 +420,19 @@ class Run:
         self._save_record()
         write_run_page(self.out, self.record)
         return self.record
+
+    # -- continuous candidates ---------------------------------------------------
+    def _select_continuous(self, state: PlanningState, batch: int) -> tuple[list[int], np.ndarray | None]:
+        """The round's picks (run indices) among fresh poses (:func:`~mitsuba_active.continuous.choose_fresh`);
+        the poses chosen are added to the run."""
+        rng = np.random.default_rng([self.cfg.seed, len(self.record["rounds"]), 1])  # the same on resume
+        owners = list(dict.fromkeys(self.env.captured))  # distinct captured views, in order
+        chosen, scores = choose_fresh(self.planner, self.journey, self.sampler, state, owners,
+                                      [self.source.candidates[i] for i in owners], batch, rng, self.cfg)
+        if chosen is None:
+            self._stop(len(self.env.captured), f"the {self.cfg.embodiment} can reach no pose on the rig")
+            return [], None
+        return [c if isinstance(c, int) else self._add_camera(c, CONTINUOUS) for c in chosen], scores
 
     # -- travel -------------------------------------------------------------
     def _travel_initial(self) -> None:
@@ -408,12 +459,35 @@ class Run:
             if why:
                 self._stop(len(self.env.captured), why)
                 break
+            if self.cfg.along_the_way is not None:
+                route, seen = self._along_the_way(route)
+                done += seen
             self.env.step(i)
             self.journey.advance(i, route)
             self._save_view(len(self.env.captured) - 1, self.env.views[-1])
             done.append(i)
         self.record["travel"] = self.journey.legs
         return done
+
+    def _along_the_way(self, route) -> tuple:
+        """Capture the views along ``route`` that the budgets leave room for besides its end
+        (:func:`~mitsuba_active.travel.stops_along`); returns the rest of the route and their indices."""
+        cfg, done = self.cfg, []
+        room = cfg.budget - len(self.env.captured) - 1  # the route's end is captured too
+        if cfg.time_budget is not None and cfg.capture_time > 0:
+            spare = cfg.time_budget * (1 + 1e-9) - self.journey.time - route.time - cfg.capture_time
+            room = min(room, int(spare // cfg.capture_time))
+        stops, rest = stops_along(route, cfg.along_the_way, cfg.speed, room)
+        ref, scene = self.source.candidates[0], self.source.scene
+        for piece in stops:
+            cam = Camera(look_at(piece.points[-1], scene.center, scene.up), ref.fov, ref.width, ref.height,
+                         ref.near, ref.far)
+            j = self._add_camera(cam, ALONG_THE_WAY)
+            self.env.step(j)
+            self.journey.advance(j, piece)
+            self._save_view(len(self.env.captured) - 1, self.env.views[-1])
+            done.append(j)
+        return rest, done
 
     def _stop(self, views: int, why: str) -> None:
         self.record["stopped"] = {"views": views, "reason": why}
@@ -458,7 +532,9 @@ class Run:
         plot_views(self.source.candidates, self.env.captured, self.source.heldout, self.source.bbox_min,
                    self.source.bbox_max, self.out / "camera_views.png", up=up,
                    initial=min(self.cfg.initial_views, n),
-                   title=f"{self.source.name}: {label}, {n} view{'' if n == 1 else 's'}")
+                   title=f"{self.source.name}: {label}, {n} view{'' if n == 1 else 's'}",
+                   routes=[np.asarray(leg["route"]) if leg.get("route") else None for leg in self.journey.legs],
+                   along=along_the_way_views(self.record))
         preds = getattr(self, "_last_preds", None)
         if preds is None:  # resumed after the last evaluation: score again to get images
             _, preds = evaluate(self.source, self.env.views, self.cfg)

@@ -126,6 +126,12 @@ def _composite_derivatives(marched: bool):
         y = dr.dot(rgb, mi.Color3f(G[:3])) + dsum * mi.Float(G[3]) + opac * mi.Float(G[4])
         return y, [np.array(dr.detach(v)) for v in (rgb, dsum, opac)]
 
+    return outputs_and_derivatives(project, raw_np)
+
+
+def outputs_and_derivatives(project, raw_np):
+    """``project(raw)`` -> (y, outputs) at the features ``raw_np`` (4, N): the outputs, then the
+    gradient of ``sum(y)`` and a forward-mode derivative of ``y`` along a fixed random direction."""
     raw = mi.Vector4f(raw_np)
     dr.enable_grad(raw)
     y, outputs = project(raw)
@@ -709,6 +715,9 @@ def test_the_default_grid_follows_the_images_width():
     assert [grids[w].n_levels for w in grids] == [2, 2, 3, 4, 5]
     assert [grids[w].n_samples for w in grids] == [64, 64, 128, 256, 256]
     assert [grids[w].occupancy_resolution > 0 for w in grids] == [False, False, True, True, True]
+    assert [(grids[w].view_degree, grids[w].distortion_weight) for w in grids] == [(0, 0.0)] * 2 + [(1, 0.01)] * 3
+    planner = FieldConfig.preset("default", width=200, planner=True)
+    assert (planner.view_degree, planner.distortion_weight) == (0, 0.0)
     # Up to 64 pixels it is the fast preset's grid; the planner's ensemble keeps it at every width.
     fast = FieldConfig.preset("fast")
     assert all((g.n_levels, g.n_samples) == (fast.n_levels, fast.n_samples) for g in (grids[32], grids[64]))

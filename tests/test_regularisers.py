@@ -11,7 +11,7 @@ from mitsuba_active.errors import UserError
 from mitsuba_active.field import Ensemble, FieldConfig, VariationalField
 from mitsuba_active.field import render
 from mitsuba_active.field.regularisers import occlusion_samples, ray_regularisers
-from tests.test_field import BOX, _composite_inputs, camera_rays, tiny_config, views
+from tests.test_field import BOX, _composite_inputs, camera_rays, outputs_and_derivatives, tiny_config, views
 
 S, BIAS, DIAG = 16, -1.0, 1.5
 
@@ -49,16 +49,7 @@ def _marched_or_blocked(raw_np, t_np, delta_np, valid_np, G, reg, marched):
              + 3.0 * r * mi.Float(np.abs(G[0])))
         return y, [np.array(dr.detach(v)) for v in (rgb, dsum, opac, r)]
 
-    raw = mi.Vector4f(raw_np)
-    dr.enable_grad(raw)
-    y, outputs = project(raw)
-    dr.backward(dr.sum(y))
-    grad = np.array(dr.grad(raw))
-    raw = mi.Vector4f(raw_np)
-    dr.enable_grad(raw)
-    dr.set_grad(raw, mi.Vector4f(np.random.default_rng(2).normal(size=raw_np.shape).astype(np.float32)))
-    y, _ = project(raw)
-    return outputs + [grad, np.array(dr.forward_to(y))]
+    return outputs_and_derivatives(project, raw_np)
 
 
 @pytest.mark.parametrize("reg", [(1.0, 0.0, 4), (0.0, 1.0, 4), (0.7, 0.3, 1)])

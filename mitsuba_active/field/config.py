@@ -31,7 +31,9 @@ def image_scaled_grid(width: int) -> dict:
     """Grid options for images ``width`` pixels across: the finest level has
     about half as many cells across as the images have pixels (2 to 5 levels,
     16 to 256 cells), a ray twice as many samples as that level has cells
-    (64 to 256), and empty space is skipped from three levels on.
+    (64 to 256), and empty space is skipped from three levels on, where the
+    colour also depends on the view (degree 1) and the distortion loss (0.01)
+    keeps the weights compact.
 
     Finer levels than the images resolve only memorise the few views there
     are: at 64 pixels, 20 views of the bundled scene scored 22.9 dB held out
@@ -39,8 +41,11 @@ def image_scaled_grid(width: int) -> dict:
     """
     finest = min(256, max(32, 1 << max(0, round(math.log2(max(1, int(width)) / 2)))))
     n_levels = int(round(math.log2(finest / 16))) + 1
-    return {"n_levels": n_levels, "n_samples": min(256, 2 * finest),
+    grid = {"n_levels": n_levels, "n_samples": min(256, 2 * finest),
             "occupancy_resolution": 64 if n_levels >= 3 else 0}
+    if n_levels >= 3:  # images that resolve highlights and floaters: view-dependent colour, distortion loss
+        grid.update(view_degree=1, distortion_weight=0.01)
+    return grid
 
 
 @dataclass(frozen=True)
@@ -81,10 +86,12 @@ FIELD_PRESETS = {
     "fast": FieldPreset({"n_levels": 2, "lr": 0.01, "empty_weight": 0.01}, {},
                         "two dense levels (16, 32 cells), 64 samples a ray: for tests and quick sweeps"),
     "default": FieldPreset({"n_levels": 2, "log2_table_size": 18, "lr": 0.01, "empty_weight": 0.01},
-                           {"n_levels": 2, "log2_table_size": 17, "n_samples": 64, "occupancy_resolution": 0},
+                           {"n_levels": 2, "log2_table_size": 17, "n_samples": 64, "occupancy_resolution": 0,
+                            "view_degree": 0, "distortion_weight": 0.0},
                            "a grid that follows the images' width: fast's up to 64 pixels; from 100, three "
-                           "levels, 128 samples a ray and empty-space skipping; from 200, four levels and 256 "
-                           "samples; from 400, five levels (up to 256 cells)", image_scaled=True),
+                           "levels, 128 samples a ray, empty-space skipping, view-dependent colour and the "
+                           "distortion loss; from 200, four levels and 256 samples; from 400, five levels "
+                           "(up to 256 cells)", image_scaled=True),
 }
 #: The preset of runs that do not name one.
 DEFAULT_PRESET = "default"

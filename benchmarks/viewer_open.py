@@ -40,7 +40,7 @@ from mitsuba_active.viewer import RunViewer
 t1 = time.perf_counter()
 viewer = RunViewer(sys.argv[1], port=int(sys.argv[2]))
 t2 = time.perf_counter()
-print(f"{t1 - t0} {t2 - t1} {viewer.port}", flush=True)
+print(f"READY {t1 - t0} {t2 - t1} {viewer.port}", flush=True)
 sys.stdin.read()
 viewer.close()
 """
@@ -80,11 +80,18 @@ def main(argv=None):
                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                                     env={**__import__("os").environ, "PYTHONPATH": str(Path.cwd())})
             try:
-                imports, server, port = proc.stdout.readline().split()
+                line = ""
+                while not line.startswith("READY"):  # viser prints its own lines first
+                    line = proc.stdout.readline()
+                    if not line:
+                        raise RuntimeError("the viewer stopped before serving")
+                imports, server, port = line.split()[1:]
                 ready = time.perf_counter()
                 browser.open(f"http://127.0.0.1:{port}")
                 browser.wait_for(SCENE_TREE)
-                browser.wait_for(f"JSON.stringify({VIEWER_KINDS}) === '{json.dumps(want, separators=(',', ':'))}'")
+                condition = " && ".join(f"k.{kind} === {n}" for kind, n in want.items())
+                if not browser.wait_for(f"(k => {condition})({VIEWER_KINDS})"):
+                    raise RuntimeError(f"the page did not show every camera: {browser.evaluate(VIEWER_KINDS)}")
                 shown = time.perf_counter()
                 kinds = browser.evaluate(VIEWER_KINDS)
             finally:

@@ -131,7 +131,7 @@ def far_capture(root, n=32, size=24, fov=50.0):
 
 def test_far_background_capture_fits_better_contracted(tmp_path):
     src = DatasetSource.from_path(far_capture(tmp_path))
-    assert src.field_options() == {"contraction": FAR_CONTRACTION}
+    assert src.suggested_contraction() == FAR_CONTRACTION and src.field_options() == {}
     views = [src.candidate_view(i) for i in range(len(src.candidates))]
     base = dict(n_levels=2, n_samples=32, batch_rays=1024, lr=0.02)
     scores = {}
@@ -161,8 +161,8 @@ def test_capture_field_options(tmp_path):
     rgba = np.concatenate([textured, np.full((8, 8, 1), 128, np.uint8)], axis=-1)
     box = {"aabb": [[-1, -1, -1], [1, 1, 1]]}
     assert write(tmp_path / "a", textured, {"aabb_scale": 16, "scale": 0.5})
-    assert write(tmp_path / "b", textured, {"aabb_scale": 16}).field_options() == {"contraction": 16.0}
-    assert write(tmp_path / "c", textured, box).field_options() == {"contraction": FAR_CONTRACTION}
-    assert write(tmp_path / "d", white, box).field_options() == {}
-    assert write(tmp_path / "e", rgba, box).field_options() == {}
+    assert write(tmp_path / "b", textured, {"aabb_scale": 16}).suggested_contraction() == 16.0
+    assert write(tmp_path / "c", textured, box).suggested_contraction() == FAR_CONTRACTION
+    assert write(tmp_path / "d", white, box).suggested_contraction() == 0.0
+    assert write(tmp_path / "e", rgba, box).suggested_contraction() == 0.0
     assert plain_backdrop(np.zeros((4, 4, 3))) and not plain_backdrop(textured / 255.0)

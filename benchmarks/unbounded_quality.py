@@ -46,8 +46,10 @@ from mitsuba_active.transforms import mitsuba_to_opengl  # noqa: E402
 RADIUS = 0.5
 
 
-def scene():
-    yy, xx = np.mgrid[0:128, 0:256] / np.array([128.0, 256.0])[:, None, None]
+def scene(env_size=(128, 256)):
+    """The ball in front of its environment map, ``env_size`` (height, width) texels."""
+    h, w = env_size
+    yy, xx = np.mgrid[0:h, 0:w] / np.array([float(h), float(w)])[:, None, None]
     env = np.stack([0.5 + 0.4 * np.sin(8 * np.pi * xx), 0.5 + 0.4 * np.cos(4 * np.pi * yy),
                     0.3 + 0.3 * (((xx * 8).astype(int) + (yy * 4).astype(int)) % 2)], axis=-1)
     return mi.load_dict({
@@ -62,20 +64,22 @@ def scene():
     })
 
 
-def write_capture(root: Path, n: int, size: int, fov: float = 50.0) -> Path:
-    """``n`` frames on three rings, every 5th a test frame; returns the transforms.json."""
-    sc = scene()
-    (root / "images").mkdir(parents=True)
+def write_capture(root: Path, n: int, size: int, fov: float = 50.0, elevations=(-15.0, 10.0, 35.0),
+                  spp: int = 32, test_every: int = 5, env_size=(128, 256)) -> Path:
+    """``n`` frames of ``size`` pixels on rings 2 units away at ``elevations``, every ``test_every``-th a
+    test frame; returns the transforms.json."""
+    sc = scene(env_size)
+    (root / "images").mkdir(parents=True, exist_ok=True)
     frames = []
-    cams = rings(n, [0.0, 0.0, 0.0], 2.0, fov=fov, width=size, height=size, elevations=(-15.0, 10.0, 35.0))
+    cams = rings(n, [0.0, 0.0, 0.0], 2.0, fov=fov, width=size, height=size, elevations=elevations)
     for k, cam in enumerate(cams):
         sensor = mi.load_dict({"type": "perspective", "fov": fov, "fov_axis": "x",
                                "to_world": mi.ScalarTransform4f(cam.to_world.tolist()),
                                "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}},
-                               "sampler": {"type": "independent", "sample_count": 32}})
+                               "sampler": {"type": "independent", "sample_count": spp}})
         img = np.clip(np.array(mi.render(sc, sensor=sensor, seed=k)), 0.0, 1.0)
         iio.imwrite(root / "images" / f"f_{k:03d}.png", (linear_to_srgb(img) * 255 + 0.5).astype(np.uint8))
-        frames.append({"file_path": f"images/f_{k:03d}.png", "split": "test" if k % 5 == 4 else "train",
+        frames.append({"file_path": f"images/f_{k:03d}.png", "split": "test" if k % test_every == test_every - 1 else "train",
                        "transform_matrix": mitsuba_to_opengl(cam.to_world).tolist()})
     meta = {"camera_angle_x": math.radians(fov), "aabb": [[-0.6] * 3, [0.6] * 3], "frames": frames}
     (root / "transforms.json").write_text(json.dumps(meta))

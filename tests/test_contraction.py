@@ -3,22 +3,21 @@
 import json
 import math
 
-import drjit as dr
 import imageio.v3 as iio
 import mitsuba as mi
 import numpy as np
 import pytest
 
-from mitsuba_active.cameras import camera_rays, rings
+from mitsuba_active.cameras import camera_rays
 from mitsuba_active.datasets import FAR_CONTRACTION, DatasetSource, plain_backdrop
 from mitsuba_active.errors import UserError
 from mitsuba_active.field import Ensemble, FieldConfig
 from mitsuba_active.field.render import field_position, render_rays_dr, sample_along_rays
 from mitsuba_active.field.variational import VariationalField
-from mitsuba_active.imageio_utils import linear_to_srgb
 from mitsuba_active.metrics import psnr
 from mitsuba_active.training import train_on
-from mitsuba_active.transforms import mitsuba_to_opengl
+
+from benchmarks.unbounded_quality import write_capture
 
 BOX = ([-0.6] * 3, [0.6] * 3)
 
@@ -99,34 +98,7 @@ def far_capture(root, n=32, size=24, fov=50.0):
     """A textured ball (radius 0.5, emitting its checkerboard) in front of a textured
     environment, seen by ``n`` cameras on two rings 2 away, written as a transforms.json
     (every 4th held out)."""
-    yy, xx = np.mgrid[0:32, 0:64] / np.array([32.0, 64.0])[:, None, None]
-    env = np.stack([0.5 + 0.4 * np.sin(8 * np.pi * xx), 0.5 + 0.4 * np.cos(4 * np.pi * yy),
-                    0.3 + 0.3 * (((xx * 8).astype(int) + (yy * 4).astype(int)) % 2)], axis=-1)
-    scene = mi.load_dict({
-        "type": "scene", "integrator": {"type": "direct"},
-        "env": {"type": "envmap", "bitmap": mi.Bitmap(env.astype(np.float32))},
-        "ball": {"type": "sphere", "radius": 0.5, "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb",
-                                                                                               "value": 0.0}},
-                 "emitter": {"type": "area", "radiance": {
-                     "type": "checkerboard", "color0": {"type": "rgb", "value": [0.9, 0.2, 0.1]},
-                     "color1": {"type": "rgb", "value": [0.1, 0.3, 0.9]},
-                     "to_uv": mi.ScalarTransform4f().scale([6, 6, 1])}}},
-    })
-    (root / "images").mkdir(parents=True, exist_ok=True)
-    frames = []
-    for k, cam in enumerate(rings(n, [0.0, 0.0, 0.0], 2.0, fov=fov, width=size, height=size,
-                                  elevations=(-10.0, 15.0))):
-        sensor = mi.load_dict({"type": "perspective", "fov": fov, "fov_axis": "x",
-                               "to_world": mi.ScalarTransform4f(cam.to_world.tolist()),
-                               "film": {"type": "hdrfilm", "width": size, "height": size, "rfilter": {"type": "box"}},
-                               "sampler": {"type": "independent", "sample_count": 16}})
-        img = np.clip(np.array(mi.render(scene, sensor=sensor, seed=k)), 0.0, 1.0)
-        iio.imwrite(root / "images" / f"f_{k:02d}.png", (linear_to_srgb(img) * 255 + 0.5).astype(np.uint8))
-        frames.append({"file_path": f"images/f_{k:02d}.png", "split": "test" if k % 4 == 3 else "train",
-                       "transform_matrix": mitsuba_to_opengl(cam.to_world).tolist()})
-    meta = {"camera_angle_x": math.radians(fov), "aabb": [[-0.6] * 3, [0.6] * 3], "frames": frames}
-    (root / "transforms.json").write_text(json.dumps(meta))
-    return root / "transforms.json"
+    return write_capture(root, n, size, fov, elevations=(-10.0, 15.0), spp=16, test_every=4, env_size=(32, 64))
 
 
 def test_far_background_capture_fits_better_contracted(tmp_path):

@@ -29,11 +29,13 @@ import platform
 import sys
 import tempfile
 import time
+from functools import lru_cache
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import mitsuba_active  # noqa: E402,F401
+import cv2  # noqa: E402
 import imageio.v3 as iio  # noqa: E402
 import numpy as np  # noqa: E402
 
@@ -44,7 +46,7 @@ from mitsuba_active.field import Ensemble, FieldConfig  # noqa: E402
 from mitsuba_active.field.config import FIELD_PRESETS  # noqa: E402
 from mitsuba_active.groundtruth import View  # noqa: E402
 from mitsuba_active.imageio_utils import linear_to_srgb, srgb_to_linear  # noqa: E402
-from mitsuba_active.lens import capture_through, remap, valid_scale  # noqa: E402
+from mitsuba_active.lens import Lens, fold_radius, capture_through, distort  # noqa: E402
 from mitsuba_active.training import score_views, train_on  # noqa: E402
 from mitsuba_active.scene import scene_from_mesh  # noqa: E402
 
@@ -73,6 +75,52 @@ def write_dataset(root: Path, train, test, bbox, model: str, coeffs: dict) -> No
     meta = {"camera_model": model, "fl_x": f, "fl_y": f, "cx": cam.width / 2, "cy": cam.height / 2,
             "w": cam.width, "h": cam.height, **coeffs, "aabb": [list(map(float, b)) for b in bbox], "frames": frames}
     (root / "transforms.json").write_text(json.dumps(meta))
+
+
+# -- the undistortion route, as datasets took it before their cameras carried the lens ----------
+
+@lru_cache(maxsize=4)
+def undistort_maps(lens: Lens) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where each pixel of the undistorted image lies in the captured one.
+
+    The undistorted image is a pinhole with focal length ``fx`` in both axes,
+    principal point ``(cx, cy)`` and the captured image's size. Returns
+    ``(map_x, map_y, valid)``: (H, W) float32 pixel coordinates (pixel
+    centres at +0.5 are OpenCV's integers) and an (H, W) bool mask of the
+    pixels that see the captured image (inside it, before any fold).
+    """
+    w, h = lens.size
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64) + 0.5, np.arange(h, dtype=np.float64) + 0.5)
+    x, y = (u - lens.cx) / lens.fx, (v - lens.cy) / lens.fx
+    xd, yd = distort(lens, x, y)
+    # Captured pixel coordinates, with OpenCV's integer pixel centres.
+    map_x, map_y = xd * lens.fx + lens.cx - 0.5, yd * lens.fy + lens.cy - 0.5
+    inside = (map_x >= -0.5) & (map_x <= w - 0.5) & (map_y >= -0.5) & (map_y <= h - 0.5)
+    valid = inside & (np.hypot(x, y) < fold_radius(lens, float(np.hypot(x, y).max()) * 1.01))
+    return map_x.astype(np.float32), map_y.astype(np.float32), valid
+
+
+def valid_scale(lens: Lens) -> float:
+    """Largest ``s`` in (0, 1] such that the window of ``s`` times the image's half size
+    on each side of ``(cx, cy)`` sees only captured pixels (0 when none does)."""
+    w, h = lens.size
+    _, _, valid = undistort_maps(lens)
+    if valid.all():
+        return 1.0
+    rows, cols = np.nonzero(~valid)
+    # A window of scale s holds a pixel when both its offsets lie within s half sizes.
+    t = np.maximum(np.abs(cols + 0.5 - lens.cx) / (0.5 * w), np.abs(rows + 0.5 - lens.cy) / (0.5 * h))
+    return float(min(t.min(), 1.0))
+
+
+def remap(lens: Lens, img: np.ndarray, nearest: bool = False) -> np.ndarray:
+    """The undistorted image of (H, W) or (H, W, C) float32 ``img`` (bilinear, or ``nearest``); pixels that
+    see nothing captured repeat the edge (:func:`valid_scale` keeps them out of the views)."""
+    map_x, map_y, _ = undistort_maps(lens)
+    flags = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+    out = cv2.remap(np.ascontiguousarray(img, dtype=np.float32), map_x, map_y, flags,
+                    borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(img.shape)
 
 
 def undistorted_views(src: DatasetSource) -> tuple[list, tuple]:

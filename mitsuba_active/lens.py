@@ -4,9 +4,9 @@ Real captures (phones, COLMAP, nerfstudio's ``ns-process-data``) come with
 a distortion model. :class:`Lens` holds one frame's intrinsics and model;
 :func:`pixel_rays` gives the ray through every pixel centre of the image as
 captured (the inverse of :func:`distort`, per pixel), which a dataset's
-cameras train and score along. :func:`undistort_maps` and :func:`remap`
-resample an image to a pinhole instead (the route datasets took before, which
-crops the periphery the lens sees: ``benchmarks/distortion_quality.py``).
+cameras train and score along. Resampling the images to a pinhole instead
+crops the periphery the lens sees (``benchmarks/distortion_quality.py``
+measures both routes).
 
 Models, on normalised image coordinates ``(x, y)``, ``r^2 = x^2 + y^2``:
 
@@ -181,7 +181,7 @@ def undistort(lens: Lens, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, n
         found &= np.isfinite(x) & np.isfinite(y) & (miss < INVERSE_TOL_PX)
         r = np.hypot(x, y)
         if found.any():  # the other preimage of a folding model shows what lies elsewhere
-            found &= r < _fold_radius(lens, float(r[found].max()) * 1.01)
+            found &= r < fold_radius(lens, float(r[found].max()) * 1.01)
     return np.where(found, x, xd), np.where(found, y, yd), found
 
 
@@ -202,57 +202,13 @@ def pixel_rays(lens: Lens) -> tuple[np.ndarray, np.ndarray]:
     return local, valid
 
 
-def _fold_radius(lens: Lens, r_max: float) -> float:
+def fold_radius(lens: Lens, r_max: float) -> float:
     """The undistorted radius (normalised) up to which the radial model keeps growing, at most ``r_max``:
     beyond it, points fold back onto the image and would show what lies elsewhere."""
     r = np.linspace(0.0, r_max, FOLD_SAMPLES)
     rd, _ = distort(Lens(lens.model, 1, 1, 0, 0, lens.coeffs[:4] + (0.0, 0.0), lens.size), r, np.zeros_like(r))
     falling = np.nonzero(np.diff(rd) <= 0)[0]
     return float(r[falling[0]]) if falling.size else math.inf
-
-
-@lru_cache(maxsize=4)
-def undistort_maps(lens: Lens) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Where each pixel of the undistorted image lies in the captured one.
-
-    The undistorted image is a pinhole with focal length ``fx`` in both axes,
-    principal point ``(cx, cy)`` and the captured image's size. Returns
-    ``(map_x, map_y, valid)``: (H, W) float32 pixel coordinates (pixel
-    centres at +0.5 are OpenCV's integers) and an (H, W) bool mask of the
-    pixels that see the captured image (inside it, before any fold).
-    """
-    w, h = lens.size
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64) + 0.5, np.arange(h, dtype=np.float64) + 0.5)
-    x, y = (u - lens.cx) / lens.fx, (v - lens.cy) / lens.fx
-    xd, yd = distort(lens, x, y)
-    # Captured pixel coordinates, with OpenCV's integer pixel centres.
-    map_x, map_y = xd * lens.fx + lens.cx - 0.5, yd * lens.fy + lens.cy - 0.5
-    inside = (map_x >= -0.5) & (map_x <= w - 0.5) & (map_y >= -0.5) & (map_y <= h - 0.5)
-    valid = inside & (np.hypot(x, y) < _fold_radius(lens, float(np.hypot(x, y).max()) * 1.01))
-    return map_x.astype(np.float32), map_y.astype(np.float32), valid
-
-
-def valid_scale(lens: Lens) -> float:
-    """Largest ``s`` in (0, 1] such that the window of ``s`` times the image's half size
-    on each side of ``(cx, cy)`` sees only captured pixels (0 when none does)."""
-    w, h = lens.size
-    _, _, valid = undistort_maps(lens)
-    if valid.all():
-        return 1.0
-    rows, cols = np.nonzero(~valid)
-    # A window of scale s holds a pixel when both its offsets lie within s half sizes.
-    t = np.maximum(np.abs(cols + 0.5 - lens.cx) / (0.5 * w), np.abs(rows + 0.5 - lens.cy) / (0.5 * h))
-    return float(min(t.min(), 1.0))
-
-
-def remap(lens: Lens, img: np.ndarray, nearest: bool = False) -> np.ndarray:
-    """The undistorted image of (H, W) or (H, W, C) float32 ``img`` (bilinear, or ``nearest``); pixels that
-    see nothing captured repeat the edge (:func:`valid_scale` keeps them out of the views)."""
-    map_x, map_y, _ = undistort_maps(lens)
-    flags = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
-    out = cv2.remap(np.ascontiguousarray(img, dtype=np.float32), map_x, map_y, flags,
-                    borderMode=cv2.BORDER_REPLICATE)
-    return out.reshape(img.shape)
 
 
 def capture_through(img: np.ndarray, f: float, model: str, coeffs: dict) -> np.ndarray:

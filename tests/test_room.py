@@ -21,8 +21,9 @@ def test_samples_start_near_away_from_the_origin():
         start = max(near * np.linalg.norm(hi - lo) * 1.1, 0.0)
         assert t[0, 0] - 0.5 * (t[0, 1] - t[0, 0]) == pytest.approx(start, abs=1e-5)  # inside: from near on
         assert t[1, 0] - 0.5 * (t[1, 1] - t[1, 0]) == pytest.approx(0.9, abs=1e-5)  # outside: from the box on
-    with pytest.raises(UserError, match="near"):
-        FieldConfig(near=1.0)
+    for bad in (1.0, -0.1):
+        with pytest.raises(UserError, match="near"):
+            FieldConfig(near=bad)
 
 
 def test_rooms_get_the_room_options_objects_do_not(shared_data, sphere_xml):

@@ -18,6 +18,7 @@ import multiprocessing as mp
 import os
 import signal
 import socket
+import sys
 import tempfile
 import threading
 import time
@@ -157,6 +158,15 @@ def _init_worker(parent: int):
             os._exit(1)
         raise SystemExit(1)
 
+    def stop_again(info):
+        # A stop that lands in a callback Python runs on its own (a weakref's, during garbage
+        # collection) is printed and dropped there: deliver it again, to the job's own code.
+        if isinstance(info.exc_value, SystemExit) and signal.getsignal(signal.SIGTERM) is signal.SIG_IGN:
+            signal.signal(signal.SIGTERM, stop)
+            os.kill(os.getpid(), signal.SIGTERM)
+            return
+        sys.__unraisablehook__(info)
+
     def watch_parent():
         while os.getppid() == parent:
             time.sleep(1.0)
@@ -164,6 +174,7 @@ def _init_worker(parent: int):
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, stop)
+    sys.unraisablehook = stop_again
     threading.Thread(target=watch_parent, daemon=True).start()
     tqdm.set_lock(threading.RLock())
     _show_warnings_as_lines()

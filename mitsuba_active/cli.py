@@ -358,8 +358,8 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
 
     SCENE_PATH is a Mitsuba scene XML, a mesh (a scene is authored around
     it with the defaults of `mitsuba-active scene`, in OUT/scene), a
-    transforms.json (or a folder holding one), or nothing for the bundled
-    scene. Writes run.json, metrics.csv, plots, a contact sheet of the chosen
+    transforms.json (or a folder holding one), a COLMAP project folder
+    (sparse/0 and images/), or nothing for the bundled scene. Writes run.json, metrics.csv, plots, a contact sheet of the chosen
     views and held-out renders.
     """
     scene_path = str(scene_path or BUNDLED_SCENE)

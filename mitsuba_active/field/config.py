@@ -10,7 +10,8 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
-from ..checks import unknown_choice
+from ..checks import is_number, is_whole, unknown_choice
+from ..errors import UserError
 
 
 #: Most grid levels, cells per axis of the finest level, and samples (rays x
@@ -273,9 +274,6 @@ class FieldConfig:
     occupancy_warmup: int = 64
 
     def __post_init__(self):
-        from ..checks import is_number, is_whole
-        from ..errors import UserError
-
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             if not is_number(value, finite=True):
@@ -351,8 +349,6 @@ class FieldConfig:
         Raises:
             UserError: an unknown preset.
         """
-        from ..errors import UserError
-
         if name not in FIELD_PRESETS:
             raise UserError(unknown_choice("field preset", name, FIELD_PRESETS))
         return cls(**{**FIELD_PRESETS[name].config_options(width, planner), **options})
@@ -364,8 +360,6 @@ class FieldConfig:
         Raises:
             UserError: an unknown option, or a value of the wrong type.
         """
-        from ..errors import UserError
-
         # Every option is an int or a float (see the module docstring), so the
         # type of its default parses its value.
         known = {f.name: type(f.default) for f in dataclasses.fields(cls)}
@@ -383,8 +377,6 @@ class FieldConfig:
     @classmethod
     def from_dict(cls, d: dict) -> "FieldConfig":
         """The config a saved field records; UserError on a key that is no option."""
-        from ..errors import UserError
-
         if not isinstance(d, dict):
             raise UserError("its config is not a JSON object")
         known = {f.name for f in dataclasses.fields(cls)}

@@ -20,12 +20,14 @@ import json
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+from tqdm import tqdm
 
 from ..checks import is_whole
 from ..errors import TrainingDiverged, UserError
 from ..variant import require_variant
 from .config import MAX_MEMBERS, MAX_STEPS, FieldConfig
 from .grid import GridLayout, init_grid
+from .io import load_ensemble, save_ensemble
 from .occupancy import DECAY, cell_opacity
 from .regularisers import ray_regularisers
 from .render import FieldParams, hash_u32, render_flat, render_members, uniform_from_u32
@@ -474,8 +476,6 @@ class Ensemble:
         it = range(int(steps))
         bar = None
         if progress:
-            from tqdm import tqdm
-
             bar = tqdm(it, desc="field", unit="step")
             it = bar
         for j in it:
@@ -618,15 +618,11 @@ class Ensemble:
     # ----------------------------------------------------------------- save
     def save(self, path):
         """Write the ensemble to ``path`` (.npz, see :mod:`.io`)."""
-        from .io import save_ensemble
-
         return save_ensemble(self, path)
 
     @classmethod
     def load(cls, path) -> "Ensemble":
         """Read an ensemble written by :meth:`save`."""
-        from .io import load_ensemble
-
         return load_ensemble(cls, path)
 
     def __repr__(self):

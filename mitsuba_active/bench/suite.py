@@ -9,7 +9,7 @@ A suite is a TOML file (see ``benchmarks/suites/shared.toml``)::
     candidates = 100
     [[scenes]]
     name = "spot"
-    mesh = "meshes/spot.obj"   # authored with scene_from_mesh (options: up, color, sun, floor, texture, ...;
+    mesh = "meshes/spot.obj"   # authored with scene_from_mesh (options: up, color, sun, floor, texture, look, ...;
                                # files relative to the suite; an xml scene takes none)
     [[scenes]]
     name = "room"
@@ -39,7 +39,7 @@ from ..planners.base import planner_class, planner_label, resolve_reference
 from ..run import RunConfig
 from ..scene import SceneOptions
 
-SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture", "two_sided")
+SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture", "two_sided", "look")
 #: What a suite's scene is made from: the key that names its file or folder.
 SCENE_KINDS = ("mesh", "xml", "dataset")
 #: RunConfig fields of rendered scenes: a dataset's cameras and images are as they were captured.

@@ -7,11 +7,11 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from ..errors import UserError
 from ..colmap import is_colmap_project
+from ..errors import UserError
 from ..executors import EXECUTORS, RayOptions, prepare_ray, run_local, run_ray
-from ..transforms import TRANSFORMS_FILES
 from ..run import ends_short_of_a_batch
+from ..transforms import TRANSFORMS_FILES
 from .jobs import _recorded, finished_record, plan_jobs, run_job
 from .suite import load_suite
 from .tables import write_report

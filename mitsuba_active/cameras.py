@@ -433,6 +433,30 @@ def clip_range(radius: float, reach: float) -> tuple[float, float]:
     return min(1e-3, 1e-2 * radius), max(1e4, 2.0 * reach)
 
 
+#: How much farther than touching the image's edge rigs around an object stand (1.05: 5 %).
+FRAMING_MARGIN = 1.05
+
+
+def framing_radius(scene) -> float:
+    """Radius (scene units) of the sphere about the scene's centre that holds all of its geometry:
+    the farthest vertex of its meshes, or corner of another shape's bounding box, from
+    ``scene.center``. At most ``scene.radius``, that of its bounding box, whose empty corners
+    (a rounded or a tilted object) it leaves out; a rig whose cameras see this sphere whole sees
+    the whole scene from every direction."""
+    centre, farthest = np.asarray(scene.center, dtype=np.float64), 0.0
+    for shape in scene.mi_scene.shapes():
+        if shape.is_mesh():  # Mitsuba keeps a mesh's vertices in world space
+            points = np.array(shape.vertex_positions_buffer(), dtype=np.float64).reshape(-1, 3)
+        else:
+            box = shape.bbox()
+            lo, hi = np.array(box.min, dtype=np.float64), np.array(box.max, dtype=np.float64)
+            points = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        if len(points):
+            farthest = max(farthest, float(np.linalg.norm(points - centre, axis=1).max()))
+    # Rounding aside, never farther than the box's corners; a scene of no points keeps the box's sphere.
+    return min(farthest, scene.radius) if farthest > 0 else scene.radius
+
+
 def auto_rig(scene) -> tuple[str, str]:
     """The rig ``auto`` picks for a :class:`~mitsuba_active.scene.Scene`, and why (in words)."""
     if scene.interior:
@@ -446,7 +470,9 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
     """Candidate and held-out cameras for a :class:`~mitsuba_active.scene.Scene`.
 
     ``rig``: ``sphere``, ``hemisphere`` and ``rings`` surround the scene's
-    bounds at a distance where the bounding sphere fills the view;
+    centre at a distance where the sphere about it that holds all of its
+    geometry (:func:`framing_radius`) fills the view, within
+    :data:`FRAMING_MARGIN`;
     ``interior`` places cameras inside a room; ``xml`` takes the XML's own
     sensors as candidates, with their poses, fields of view and clip
     distances (held-out views then come from a generated rig);
@@ -506,7 +532,8 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
         half_fov = math.radians(fov) / 2
         if height < width:  # wide images: the vertical field of view is the narrower one
             half_fov = math.atan(math.tan(half_fov) * height / width)
-        radius = 1.05 * scene.radius / math.sin(half_fov)
+        # The farthest point of the geometry 5 % inside the narrower field of view, from any direction.
+        radius = FRAMING_MARGIN * framing_radius(scene) / math.sin(half_fov)
         near, far = clip_range(scene.radius, radius + scene.radius)
         centre, axes, frame = scene.center, radius, up_frame(scene.up)
         band = (math.sin(math.radians(HEMISPHERE_MIN_ELEVATION)) if generated == "hemisphere" else -1.0, 1.0)

@@ -337,11 +337,12 @@ def _write_tree(root: Path, files: dict) -> None:
 
 def _inputs(job, bundles: dict, ray) -> tuple:
     """What a worker without the suite folder needs to run ``job``: the scene's
-    files (its XML and the files it names, below their common folder), a
-    planner file of the user's own, and the files the run folder holds."""
+    files (its XML and the files it names, or a dataset's ``job.scene_files``, below
+    their common folder), a planner file of the user's own, and the files the run folder holds."""
     xml = Path(job.scene_xml)
     if job.scene_xml not in bundles:
-        files = [xml.resolve(), *(p.resolve() for p in referenced_files(xml))]
+        files = ([Path(f) for f in job.scene_files] if job.scene_files is not None
+                 else [xml.resolve(), *(p.resolve() for p in referenced_files(xml))])
         root = Path(os.path.commonpath([p.parent for p in files]))
         bundles[job.scene_xml] = ray.put({"xml": str(xml.resolve().relative_to(root)),
                                           "files": _read_tree(root, files)})

@@ -138,3 +138,25 @@ def test_without_ray_the_executor_names_the_extra(tiny_suite, tmp_path):  # noqa
     assert proc.stderr.strip().splitlines() == [
         "mitsuba-active: error: --executor ray needs Ray: pip install 'mitsuba-active[ray]'"], proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_a_dataset_scene_runs_on_ray_as_on_local_workers(tmp_path, ray_instance):
+    """Without shared storage its frames travel to the task: the same results, and the run's record
+    names the dataset where the suite has it."""
+    from mitsuba_active.bench import parse_overrides
+    from tests.test_bench_datasets import TINY
+    from tests.test_datasets import write_dataset
+
+    write_dataset(tmp_path / "capture", n=10, size=(8, 8), form="blender")
+    suite = tmp_path / "s.toml"
+    suite.write_text('planners = ["even"]\n[[scenes]]\ndataset = "capture"\n')
+    overrides = parse_overrides(TINY)
+    local, back = tmp_path / "local", tmp_path / "driver"
+    run_suite(suite, local, "quick", progress=False, overrides=overrides)
+    run_suite(suite, back, "quick", progress=False, overrides=overrides, executor="ray",
+              ray=RayOptions(storage="driver"))
+    expected = comparable(json.loads((local / "report" / "results.json").read_text()))
+    assert len(expected["cells"]) == 1
+    assert comparable(json.loads((back / "report" / "results.json").read_text())) == expected
+    rec = json.loads((back / "runs" / "capture" / "even-seed0" / "run.json").read_text())
+    assert rec["finished"] and rec["heldout_files"] == ["images/f_008.png", "images/f_009.png"]

@@ -147,7 +147,8 @@ def test_wide_images_keep_the_whole_object_in_view(sphere_xml):
         for cam in candidates:
             half_x = np.radians(cam.fov) / 2
             half_y = np.arctan(np.tan(half_x) * height / width)
-            seen = np.arcsin(scene.radius / np.linalg.norm(cam.position - scene.center))
+            # The ball's radius: 0.5, its vertices' (its bounding box's corners lie farther, and out of view).
+            seen = np.arcsin(0.5 / np.linalg.norm(cam.position - scene.center))
             assert seen < min(half_x, half_y)
 
 

@@ -11,7 +11,8 @@ import contextlib
 import shutil
 import tempfile
 import time
-from dataclasses import asdict, dataclass
+import warnings
+from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
 
 import drjit as dr
@@ -25,7 +26,8 @@ from ..planners.base import REGISTRY, planner_digest, registered_name, resolve_r
 from ..run import (Run, RunConfig, field_config, read_record, read_resumable_record, resume_obstacles, same_config,
                    other_settings, undone_unless_resumable)
 from ..scene import content_hash, load_mesh, load_scene, scene_from_mesh
-from .suite import TABLE_KEYS, Suite, SuitePlanner
+from ..transforms import locate_files, parse_frame, read_transforms, split_frames
+from .suite import RENDER_KEYS, TABLE_KEYS, Suite, SuitePlanner
 
 #: Settings of the two profiles. ``quick`` runs the whole suite with one seed,
 #: small images and short training, in minutes on two cores; ``full`` uses
@@ -43,21 +45,26 @@ class Job:
     scene: str
     planner: str
     seed: int
-    scene_xml: str
+    scene_xml: str  #: the scene's XML, or a dataset's transforms .json or folder
     config: dict
     out: str
-    content_hash: str | None = None  #: of the scene as it is now (None: its XML is missing)
+    content_hash: str | None = None  #: of the scene or dataset as it is now (None: missing)
     planner_digest: str | None = None  #: of a planner file of the user's own (None: the package's planner)
+    #: A dataset's files (its transforms files, images and depth maps; absolute paths), for executors
+    #: that send a run its scene's files; None: a scene's XML and the files it names.
+    scene_files: list | None = None
 
 
 def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=None, scenes=None,
               author: bool = True, overrides: dict | None = None) -> list[Job]:
-    """Author the mesh scenes and list every run of the suite.
+    """Author the mesh scenes, read the datasets' frames and list every run of the suite.
 
     ``overrides`` (see :func:`parse_overrides`) win over the suite's and the
     scenes' settings. Every job's settings are checked, and every scene and
     mesh loaded, before anything is written (a failed authoring leaves
-    nothing of its own behind). A mesh scene is authored anew each time (``author``);
+    nothing of its own behind); a dataset is read as its runs read it (a
+    dataset scene's jobs take no ``rig``, ``fov`` or ``spp``: its cameras
+    and images are as they were captured). A mesh scene is authored anew each time (``author``);
     authoring is deterministic, so unchanged scenes keep their content hash
     and their finished runs. A folder whose runs were made with another scene
     or other settings is refused before anything is replaced or run. Without
@@ -115,11 +122,14 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                 # Tables merge key by key: a suite's `field` adds to the profile's.
                 for key in TABLE_KEYS:
                     settings[key] = {k: v for layer in layers for k, v in layer.get(key, {}).items()}
+                if sc.kind == "dataset":  # the suite-wide settings of its rendered scenes
+                    settings.update({k: _RUN_DEFAULTS[k] for k in RENDER_KEYS})
                 try:
                     cfg = RunConfig(scene=str(xml), planner=planner.ref, seed=int(seed), **settings)
-                    # A generated rig has as many candidates as asked for; the XML's own, as it has.
-                    cfg.validate(None if cfg.rig == "xml" else cfg.candidates)
-                    if cfg.downscale is not None:  # a suite's scenes are scenes, never datasets
+                    # A generated rig has as many candidates as asked for; the XML's own and a
+                    # dataset's, as it has (a dataset's are checked once read).
+                    cfg.validate(None if cfg.rig == "xml" or sc.kind == "dataset" else cfg.candidates)
+                    if cfg.downscale is not None and sc.kind != "dataset":
                         raise UserError("downscale applies to datasets; a scene renders at its resolution")
                 except UserError as exc:  # e.g. budget = "20"
                     raise UserError(f"scene '{sc.name}': {exc}") from None
@@ -139,11 +149,21 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
                 jobs.append(Job(sc.name, planner.name, int(seed), str(xml), asdict(cfg),
                                 str(out_dir / "runs" / sc.name / f"{folder_name(planner.name)}-seed{seed}"),
                                 planner_digest=digests[planner.name]))
-    hashes = {}  # scene XML -> content hash
+    hashes = {}  # scene XML (or dataset) -> content hash
+    selected = [sc for sc in suite.scenes if any(j.scene == sc.name for j in jobs)]
+    for sc in selected:
+        if sc.kind == "dataset":  # read before anything is authored or run: a bad dataset stops the suite
+            own = [j for j in jobs if j.scene == sc.name]
+            hashes[str(sc.path)] = _read_dataset(sc, own, strict=author)
+            if author and hashes[str(sc.path)] is not None:
+                files = dataset_files(sc.path)
+                for job in own:
+                    job.scene_files = files
     if author:
-        selected = [sc for sc in suite.scenes if any(j.scene == sc.name for j in jobs)]
         with _mitsuba_warnings_muted():  # its runs show them, once
             for sc in selected:  # a scene that cannot load stops the suite before any is authored or run
+                if sc.kind == "dataset":
+                    continue
                 try:
                     load_mesh(sc.path) if sc.kind == "mesh" else load_scene(sc.path)
                 except UserError as exc:
@@ -175,6 +195,57 @@ def plan_jobs(suite: Suite, out_dir: Path, profile: str, seeds=None, planners=No
         job.content_hash = hashes[job.scene_xml]
     _refuse_other_runs(jobs)  # --report-only too: it would report a mix, or leave runs out unsaid
     return jobs
+
+
+#: RunConfig's own values of its fields.
+_RUN_DEFAULTS = {f.name: f.default for f in fields(RunConfig) if f.default is not MISSING}
+
+
+def _read_dataset(sc, jobs: list[Job], strict: bool) -> str | None:
+    """Read a dataset scene's frames as each of its jobs' runs will (UserError, naming the
+    scene, on a bad dataset or settings it cannot run with) and return its content hash: a
+    digest of its transforms files (poses, intrinsics and image file names), as the runs
+    record it. Not ``strict`` (reports only), a dataset that cannot be read has none."""
+    groups: dict = {}  # jobs whose runs read the same frames at the same size
+    for job in jobs:
+        groups.setdefault(tuple(job.config[k] for k in ("candidates", "heldout", "resolution", "downscale")),
+                          []).append(job)
+    digest = None
+    for group in groups.values():
+        try:
+            with warnings.catch_warnings():  # frames without images: its runs say so, once each
+                warnings.simplefilter("ignore")
+                source = RunConfig(**group[0].config).open_source(cache_dir=False)
+            for job in group:  # e.g. a budget larger than its frames
+                cfg = RunConfig(**job.config)
+                cfg.validate(len(source.candidates))
+                if cfg.along_the_way is not None or cfg.candidates_mode == "continuous":
+                    raise UserError(f"{'along_the_way' if cfg.along_the_way is not None else 'candidates_mode'} "
+                                    "renders new poses, which only a scene can; this is a dataset of captured "
+                                    "frames")
+        except UserError as exc:
+            if not strict:
+                return None
+            raise UserError(f"scene '{sc.name}': {exc}") from None
+        digest = source.content_hash
+    return digest
+
+
+def dataset_files(path) -> list[str] | None:
+    """The files of a transforms dataset that its runs read: its transforms files and every
+    frame's image and depth map that exists (missing ones are skipped by the runs as here),
+    as sorted absolute paths; None for a dataset of another kind (a COLMAP project)."""
+    try:
+        files = locate_files(path)[0]
+    except UserError:
+        return None
+    metas = [(f, read_transforms(f)) for f in files]
+    train, test = split_frames(metas, files)
+    with warnings.catch_warnings():  # a missing depth map: its runs say so
+        warnings.simplefilter("ignore")
+        parsed = [parse_frame(*t) for t in train + test]
+    named = [*files, *(image for image, *_ in parsed), *(depth[0] for *_, depth, _ in parsed if depth[0] is not None)]
+    return sorted({str(Path(f).resolve()) for f in named if Path(f).is_file()})
 
 
 @contextlib.contextmanager

@@ -7,9 +7,11 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from ..colmap import is_colmap_project
 from ..errors import UserError
 from ..executors import EXECUTORS, RayOptions, prepare_ray, run_local, run_ray
 from ..run import ends_short_of_a_batch
+from ..transforms import TRANSFORMS_FILES
 from .jobs import _recorded, finished_record, plan_jobs, run_job
 from .suite import load_suite
 from .tables import write_report
@@ -39,6 +41,11 @@ def run_suite(suite_path, out_dir, profile="quick", workers=1, seeds=None, plann
         raise UserError(f"--workers must be between 1 and {MAX_WORKERS_PER_CORE * cores} "
                         f"({MAX_WORKERS_PER_CORE} per core of this machine's {cores}), got {workers}")
     if executor == "ray" and not report_only:  # before anything is authored
+        colmap = [sc.name for sc in suite.scenes if sc.kind == "dataset" and (not scenes or sc.name in scenes)
+                  and is_colmap_project(sc.path) and not any((sc.path / n).is_file() for n in TRANSFORMS_FILES)]
+        if colmap:  # its tasks are sent a scene's files or a transforms dataset's, not a COLMAP project's
+            raise UserError(f"scene '{colmap[0]}' is a COLMAP project, which runs with local workers only "
+                            "(--executor local); leave it out of a Ray run with --scenes")
         ray = ray or RayOptions()
         prepare_ray(ray)
     jobs = plan_jobs(suite, out_dir, profile, seeds, planners, scenes, author=not report_only,

@@ -9,12 +9,21 @@ A suite is a TOML file (see ``benchmarks/suites/shared.toml``)::
     candidates = 100
     [[scenes]]
     name = "spot"
-    mesh = "meshes/spot.obj"   # authored with scene_from_mesh (options: up, color, sun, floor, texture, ...;
+    mesh = "meshes/spot.obj"   # authored with scene_from_mesh (options: up, color, sun, floor, texture, look, ...;
                                # files relative to the suite; an xml scene takes none)
     [[scenes]]
     name = "room"
     xml = "room.xml"           # any Mitsuba scene
     rig = "interior"           # per-scene RunConfig overrides
+    [[scenes]]
+    name = "mic"
+    dataset = "nerf_synthetic_mic"   # captured frames: a transforms .json or a folder holding one,
+                                     # run as `plan` runs a dataset (its own test split held out)
+
+A dataset's cameras and images are as they were captured: the rendered
+scenes' settings ``rig``, ``fov`` and ``spp`` (of the profile, ``[defaults]``
+or ``--set``) do not apply to it, and its own table may not set them; its
+images shrink to ``resolution`` (or by ``downscale``).
 """
 
 from __future__ import annotations
@@ -30,7 +39,11 @@ from ..planners.base import planner_class, planner_label, resolve_reference
 from ..run import RunConfig
 from ..scene import SceneOptions
 
-SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture", "two_sided")
+SCENE_OPTIONS = ("up", "color", "sun", "floor", "point_lights", "env_radiance", "texture", "two_sided", "look")
+#: What a suite's scene is made from: the key that names its file or folder.
+SCENE_KINDS = ("mesh", "xml", "dataset")
+#: RunConfig fields of rendered scenes: a dataset's cameras and images are as they were captured.
+RENDER_KEYS = ("rig", "fov", "spp")
 #: The report's folder of plots over all scenes, beside each scene's (no scene may be named so).
 SUMMARY = "summary"
 #: RunConfig fields that each job sets itself (from the suite and --seeds).
@@ -42,8 +55,8 @@ TABLE_KEYS = ("field", "planner_options")
 @dataclass
 class SuiteScene:
     name: str
-    path: Path  # mesh or XML
-    kind: str  # "mesh" or "xml"
+    path: Path  # mesh, XML, or a dataset's transforms .json or folder
+    kind: str  # one of SCENE_KINDS
     scene_options: dict = field(default_factory=dict)
     run_options: dict = field(default_factory=dict)
 
@@ -120,44 +133,56 @@ def load_suite(path) -> Suite:
         raise UserError(f"{path}: defaults must be a table of settings ([defaults]), got {defaults!r}")
     scene_tables = data.get("scenes", [])
     if not (isinstance(scene_tables, list) and all(isinstance(s, dict) for s in scene_tables)):
-        raise UserError(f"{path}: scenes must be tables ([[scenes]] with mesh = \"...\" or xml = \"...\")")
+        raise UserError(f"{path}: scenes must be tables ([[scenes]] with mesh, xml or dataset = \"...\")")
     bad = set(defaults) - run_fields
     if bad:
         raise UserError(f"{path}: unknown settings in [defaults]: {', '.join(sorted(bad))}")
     _check_tables(path, "[defaults]", defaults)
     scenes = []
     for i, s in enumerate(scene_tables):
-        if ("mesh" in s) == ("xml" in s):
-            raise UserError(f"{path}: scene #{i + 1} needs exactly one of 'mesh' or 'xml'")
-        kind = "mesh" if "mesh" in s else "xml"
+        given = [k for k in SCENE_KINDS if k in s]
+        if len(given) != 1:
+            raise UserError(f"{path}: scene #{i + 1} needs exactly one of 'mesh', 'xml' or 'dataset'")
+        kind = given[0]
         if not isinstance(s[kind], str):
             raise UserError(f"{path}: scene #{i + 1}: {kind} must be a file's path, got {s[kind]!r}")
-        name = s.get("name") or Path(s[kind]).stem
+        name = s.get("name") or _default_name(path.parent / s[kind], kind)
         # The name makes folders inside the suite's (scenes/NAME, runs/NAME, report/plots/NAME beside
         # report/plots/summary), CSV and Markdown cells and a --scenes entry.
         if (not isinstance(name, str) or name in (".", "..", SUMMARY) or not name.isprintable()
                 or any(c in name for c in "/\\,|") or ("name" in s and name != name.strip())):
             raise UserError(f"{path}: scene #{i + 1}: name {name!r} cannot name a scene's folders and table rows "
                             f"(no '/', '\\', ',' or '|', no space at either end, not '.', '..' or '{SUMMARY}')")
-        extra = set(s) - {"name", "mesh", "xml"} - set(SCENE_OPTIONS) - run_fields
+        extra = set(s) - {"name", *SCENE_KINDS} - set(SCENE_OPTIONS) - run_fields
         if extra:
             raise UserError(f"{path}: scene '{name}' has unknown settings: {', '.join(sorted(extra))}")
         _check_tables(path, f"scene '{name}'", s)
         scene_options = {k: v for k, v in s.items() if k in SCENE_OPTIONS}
-        if kind == "xml" and scene_options:
+        if kind != "mesh" and scene_options:
             raise UserError(f"{path}: scene '{name}': {', '.join(sorted(scene_options))} dress a mesh; "
-                            "an xml scene is rendered as its file says")
+                            + ("an xml scene is rendered as its file says" if kind == "xml" else
+                               "a dataset's images are as they were captured"))
+        rendering = sorted(k for k in RENDER_KEYS if k in s)
+        if kind == "dataset" and rendering:
+            raise UserError(f"{path}: scene '{name}': {', '.join(rendering)} apply to rendered scenes; a dataset's "
+                            "cameras and images are as they were captured")
         if isinstance(scene_options.get("texture"), str):  # named relative to the suite, as its files are
             scene_options["texture"] = str((path.parent / scene_options["texture"]).resolve())
         try:
             SceneOptions(**scene_options)
         except UserError as exc:
             raise UserError(f"{path}: scene '{name}': {exc}") from None
-        if not (path.parent / s[kind]).is_file():  # before a suite authors or runs anything
-            raise UserError(f"{path}: scene '{name}': {not_a_file(path.parent / s[kind], kind + ' file')}")
+        where = path.parent / s[kind]
+        if kind == "dataset":  # as `plan` tells datasets from scenes; its frames are read with the jobs
+            if not (where.is_dir() or (where.is_file() and where.suffix.lower() == ".json")):
+                raise UserError(f"{path}: scene '{name}': dataset = {s[kind]!r} is no dataset: expected a "
+                                f"transforms .json file or a folder holding one ({where} "
+                                f"{'is another file' if where.exists() else 'does not exist'})")
+        elif not where.is_file():  # before a suite authors or runs anything
+            raise UserError(f"{path}: scene '{name}': {not_a_file(where, kind + ' file')}")
         if kind == "xml" and Path(s[kind]).suffix.lower() != ".xml":  # as `plan` tells scenes from datasets
             raise UserError(f"{path}: scene '{name}': xml = {s[kind]!r} is not a Mitsuba scene file (.xml)")
-        scenes.append(SuiteScene(name, (path.parent / s[kind]).resolve(), kind, scene_options,
+        scenes.append(SuiteScene(name, where.resolve(), kind, scene_options,
                                  {k: v for k, v in s.items() if k in run_fields}))
     if not scenes:
         raise UserError(f"{path}: the suite has no scenes")
@@ -165,6 +190,14 @@ def load_suite(path) -> Suite:
     if len(set(names)) != len(names):
         raise UserError(f"{path}: scene names must be unique")
     return Suite(title, planners, scenes, defaults)
+
+
+def _default_name(where: Path, kind: str) -> str:
+    """A scene's name unless the suite gives one: its file's stem, or a dataset's folder name
+    (that of its transforms .json)."""
+    if kind != "dataset":
+        return where.stem
+    return (where.parent if where.suffix.lower() == ".json" else where).resolve().name
 
 
 def _suite_planner(path: Path, entry) -> SuitePlanner:

@@ -25,7 +25,8 @@ from ..checks import is_number, is_whole
 from ..errors import UserError
 from ..imageio_utils import new_entries, remove_new
 from .loading import content_hash, load_mitsuba, referenced_files
-from .meshes import appearance, embedded_image, load_mesh, named_textures, normalise_vertices, write_ply
+from .meshes import (DEFAULT_COLOR, appearance, embedded_image, load_mesh, named_textures, normalise_vertices,
+                     write_ply)
 from .upaxis import shown_up_axis
 
 #: Half width of the authored floor, in units of the normalised object (which spans 1).
@@ -38,6 +39,14 @@ MAX_DEPTH = 1024
 COMMENT_DASHES = "\u2011\u2011"
 #: What ``SceneOptions.up`` takes.
 UP_AXES = ("auto", "y", "z")
+#: What ``SceneOptions.look`` takes.
+LOOKS = ("plain", "contrast")
+#: The ``contrast`` look's sun: from the side and above, so that views from every height see light and
+#: shade, and stronger than the plain look's; direction (towards the scene) and irradiance.
+CONTRAST_SUN = ((-0.6, -0.5, -0.45), 4.0)
+#: The ``contrast`` look's colour where neither ``color`` nor the mesh gives one: linear 0.25 grey,
+#: mid-grey once shown in sRGB, dark against the environment's white and far from black in shade.
+MID_TONE = (0.25, 0.25, 0.25)
 
 
 @dataclass
@@ -69,6 +78,9 @@ class SceneOptions:
             surface; by default (as Mitsuba's ``diffuse``) the back of a
             surface renders black, which an open mesh shows through its holes.
         max_depth: path tracer depth.
+        look: ``"plain"``, or ``"contrast"``: the sun (:data:`CONTRAST_SUN`) lights the object
+            from the side, and where neither ``color`` nor the mesh gives a colour it is
+            :data:`MID_TONE`, so that it stands out from the background and shows its shading.
     """
 
     up: str = "auto"
@@ -80,10 +92,15 @@ class SceneOptions:
     floor: bool = False
     two_sided: bool = False
     max_depth: int = 6
+    look: str = "plain"
 
     def __post_init__(self):
         if self.up not in UP_AXES:
             raise UserError(f"the up axis must be one of {', '.join(UP_AXES)}, got {self.up!r}")
+        if self.look not in LOOKS:
+            raise UserError(f"the look must be one of {', '.join(LOOKS)}, got {self.look!r}")
+        if self.look == "contrast" and self.sun is False:
+            raise UserError("the contrast look is lit by its sun: leave sun out, or choose the plain look")
         color = self.color
         if color is not None:
             if isinstance(color, str) or not hasattr(color, "__len__") or len(color) != 3 \
@@ -195,7 +212,11 @@ def _scene_xml(mesh_file: str, texture_file: str | None, color: tuple, opts: Sce
         f'    <shape type="ply" id="object"><string name="filename" value="{mesh_file}"/>{bsdf}</shape>',
         f'    <emitter type="constant"><rgb name="radiance" value="{opts.env_radiance:g}"/></emitter>',
     ]
-    if opts.sun:
+    if opts.sun and opts.look == "contrast":
+        (x, y, z), irradiance = CONTRAST_SUN
+        lines.append(f'    <emitter type="directional"><vector name="direction" x="{x:g}" y="{y:g}" z="{z:g}"/>'
+                     f'<rgb name="irradiance" value="{irradiance:g}"/></emitter>')
+    elif opts.sun:
         lines.append('    <emitter type="directional"><vector name="direction" x="-0.4" y="-1" z="-0.3"/>'
                      '<rgb name="irradiance" value="2.5"/></emitter>')
     for k in range(opts.point_lights):
@@ -247,7 +268,8 @@ def scene_from_mesh(mesh_path, out_xml, options: SceneOptions | None = None, *, 
     mesh = load_mesh(mesh_path)
     up, up_note = _up_axis(mesh, mesh_path) if opts.up == "auto" else (opts.up, None)
     vertices = normalise_vertices(mesh.vertices, up)
-    uv, texture, rgb, color = appearance(mesh, mesh_path, opts.texture, opts.color)
+    uv, texture, rgb, color = appearance(mesh, mesh_path, opts.texture, opts.color,
+                                         MID_TONE if opts.look == "contrast" else DEFAULT_COLOR)
 
     out_dir = out_xml.parent if str(out_xml.parent) else Path(".")
     added = new_entries(out_dir)  # undone on failure

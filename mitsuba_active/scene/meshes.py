@@ -252,7 +252,7 @@ def _check_image(path: Path) -> tuple[int, int]:
         raise UserError(f"texture {path} is not an image Mitsuba can read (PNG, JPEG, EXR, HDR, ...)") from None
 
 
-def appearance(mesh, mesh_path: Path, texture=None, color=None) -> tuple:
+def appearance(mesh, mesh_path: Path, texture=None, color=None, fallback=DEFAULT_COLOR) -> tuple:
     """What colours the surface of ``mesh`` (as :func:`load_mesh` loaded it
     from ``mesh_path``): ``(uv, texture, rgb, color)``.
 
@@ -260,7 +260,8 @@ def appearance(mesh, mesh_path: Path, texture=None, color=None) -> tuple:
     fields. ``uv``: (V, 2) texture coordinates or None; ``texture``: an
     image's path, ``"embedded"`` (:func:`embedded_image`) or None; ``rgb``:
     (V, 3) linear vertex colours or None; ``color``: the diffuse RGB where
-    there is neither. Warns of material files and images left out.
+    there is neither (``fallback`` where neither ``color`` nor the mesh's
+    materials give one). Warns of material files and images left out.
     """
     _warn_missing_material_files(mesh_path)
     uv, found = _find_texture(mesh, mesh_path, texture)
@@ -277,7 +278,7 @@ def appearance(mesh, mesh_path: Path, texture=None, color=None) -> tuple:
                 color = tuple(float(c) for c in material[0])
             elif texture is None:
                 rgb = material  # one colour per part: as vertex colours
-    color = DEFAULT_COLOR if color is None else color
+    color = fallback if color is None else color
     if found is None and texture is None:
         _warn_unused_material_images(mesh_path, _mesh_uv(mesh) is not None)
     return uv, found, rgb, color

@@ -38,8 +38,8 @@ with interruptible_imports():  # click, numpy and the libraries below load here,
     from .renders import render_views
     from .report import _plt
     from .run import INTERIOR_DISTANCE_WEIGHT, Run, RunConfig, default_out_dir, undone_unless_resumable
-    from .scene import (DEFAULT_COLOR, MESH_SUFFIXES, UP_AXES, SceneOptions, authoring_notes, content_hash,
-                        scene_from_mesh)
+    from .scene import (DEFAULT_COLOR, LOOKS, MESH_SUFFIXES, UP_AXES, SceneOptions, authoring_notes,
+                        content_hash, scene_from_mesh)
     from .scenes import BUNDLED_SCENE
     from .sources import SceneSource
     from .training import FIT_GAIN_DB, FLOOR_MARGIN_DB
@@ -207,11 +207,14 @@ def main():
               help="A directional sun light from above, which shades the object.")
 @click.option("--point-lights", type=click.IntRange(0, 16), default=0, show_default=True,
               help="Point lights spread on a ring above the object.")
+@click.option("--look", type=_Choice(list(LOOKS)), default=SceneOptions.look, show_default=True,
+              help="plain: the lights above; contrast: a stronger sun from the side, and a mid-tone grey where "
+                   "neither --color nor the mesh gives a colour.")
 @click.option("--floor", is_flag=True, help="Add a floor under the object.")
 @click.option("--two-sided", is_flag=True,
               help="Reflect on both sides of the surface (else its back is black, as an open mesh shows).")
 @_one_line_errors
-def scene(mesh, out, up, color, texture, no_texture, env_radiance, sun, point_lights, floor, two_sided):
+def scene(mesh, out, up, color, texture, no_texture, env_radiance, sun, point_lights, look, floor, two_sided):
     """Author a Mitsuba scene XML around a mesh.
 
     MESH is an OBJ, PLY, STL, GLB, glTF or OFF file.
@@ -220,7 +223,7 @@ def scene(mesh, out, up, color, texture, no_texture, env_radiance, sun, point_li
         raise UserError("give --texture FILE or --no-texture, not both")
     path = scene_from_mesh(mesh, out, up=up, color=None if color is None else tuple(color),
                            texture=False if no_texture else texture, env_radiance=env_radiance, sun=sun,
-                           point_lights=point_lights, floor=floor, two_sided=two_sided)
+                           point_lights=point_lights, look=look, floor=floor, two_sided=two_sided)
     for note in authoring_notes(path):
         click.echo(note, err=True)
     click.echo(f"wrote {path}")

@@ -2,7 +2,9 @@
 
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
+from mitsuba_active.cli import main
 from mitsuba_active.errors import UserError
 from mitsuba_active.scene import SceneOptions, scene_from_mesh
 
@@ -59,3 +61,13 @@ def test_a_suite_dresses_a_mesh_in_a_look_and_refuses_it_for_an_xml_scene(tmp_pa
     (tmp_path / "s.toml").write_text("[[scenes]]\nxml = 's.xml'\nlook = 'contrast'\n")
     with pytest.raises(UserError, match="look dress a mesh"):
         load_suite(tmp_path / "s.toml")
+
+
+def test_scene_command_takes_the_look(ball, tmp_path):
+    out = tmp_path / "c" / "ball.xml"
+    result = CliRunner().invoke(main, ["scene", str(ball), "-o", str(out), "--up", "y", "--look", "contrast"])
+    assert result.exit_code == 0, result.output
+    assert 'x="-0.6" y="-0.5" z="-0.45"' in out.read_text()
+    refused = tmp_path / "r" / "ball.xml"
+    result = CliRunner().invoke(main, ["scene", str(ball), "-o", str(refused), "--look", "contrast", "--no-sun"])
+    assert result.exit_code == 2 and not refused.exists()

@@ -7,10 +7,10 @@
 - :mod:`.upaxis`: the up axis a mesh's shape shows.
 """
 
-from .authoring import UP_AXES, SceneOptions, authoring_notes, scene_from_mesh
+from .authoring import LOOKS, UP_AXES, SceneOptions, authoring_notes, scene_from_mesh
 from .loading import Scene, content_hash, load_scene, referenced_files, scene_from_mitsuba
 from .meshes import DEFAULT_COLOR, MESH_SUFFIXES, load_mesh, normalise_vertices, write_ply
 
-__all__ = ["DEFAULT_COLOR", "MESH_SUFFIXES", "UP_AXES", "Scene", "SceneOptions", "authoring_notes",
+__all__ = ["DEFAULT_COLOR", "LOOKS", "MESH_SUFFIXES", "UP_AXES", "Scene", "SceneOptions", "authoring_notes",
            "content_hash", "load_mesh", "load_scene", "normalise_vertices", "referenced_files",
            "scene_from_mesh", "scene_from_mitsuba", "write_ply"]

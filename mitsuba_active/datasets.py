@@ -34,7 +34,7 @@ from .checks import is_number, is_whole
 from .colmap import (HOLDOUT_EVERY, MODEL_FILES, SPARSE, frames_from_reconstruction, heldout_indices,
                      is_colmap_project, points_bounds, read_model)
 from .errors import UserError
-from .field.config import MAX_CONTRACTION
+from .field.config import CAPTURE_SKY_RESOLUTION, MAX_CONTRACTION
 from .groundtruth import View, default_cache_dir
 from .images import crop, image_size, read_depth, read_rgb
 from .imageio_utils import linear_to_srgb, srgb_to_linear
@@ -135,10 +135,11 @@ class DatasetSource:
 
     def field_options(self, config=None) -> dict:
         """:class:`~mitsuba_active.field.FieldConfig` options the capture needs (over any ``config``):
-        none. A far background would ask for :meth:`suggested_contraction`, but on a 200-pixel capture
-        of 20 views it scored below the box alone on the object (``benchmarks/unbounded_quality.py``),
-        so it is not chosen for the user."""
-        return {}
+        where its background lies beyond its box (:meth:`suggested_contraction` is not 0), a
+        directional background (``background_resolution``), which lets the volume around the object
+        stay empty; else none. The contraction itself is not chosen: from 20 views it filled the
+        space before the cameras (``benchmarks/unbounded_quality.py``)."""
+        return {"background_resolution": CAPTURE_SKY_RESOLUTION} if self.suggested_contraction() else {}
 
     def suggested_contraction(self) -> float:
         """The ``contraction`` a capture whose background lies beyond its box would take: its

@@ -122,7 +122,8 @@ def test_aabb_scale_gives_instant_ngps_box_and_a_contraction(tmp_path):
     assert np.allclose(src.bbox_min, -0.5 / 0.33) and np.allclose(src.bbox_max, 0.5 / 0.33)
     write_dataset(tmp_path / "b", n=4, extra={"aabb_scale": 16, "scale": 0.5, "offset": [0.5, 0.5, 0.5]})
     src = DatasetSource.from_path(tmp_path / "b")
-    assert np.allclose(src.bbox_max, 1.0) and src.suggested_contraction() == 16.0 and src.field_options() == {}
+    assert np.allclose(src.bbox_max, 1.0) and src.suggested_contraction() == 16.0
+    assert src.field_options() == {"background_resolution": 16}
     write_dataset(tmp_path / "c", n=4, extra={"aabb_scale": 16, "aabb": [[-1, -1, -1], [2, 2, 2]]})
     assert np.allclose(DatasetSource.from_path(tmp_path / "c").bbox_max, 2.0)  # the aabb wins
 

@@ -4,17 +4,20 @@ Renders a textured ball (radius 0.5, emitting a checkerboard) in front of a
 textured environment map with Mitsuba, from ``--views`` cameras on rings 2
 units away (``--res`` pixels, 200 by default), and writes them as a
 transforms.json capture whose ``aabb`` is the ball's box: the images'
-backgrounds are neither white nor transparent, so it suggests the scene
-contraction (``DatasetSource.suggested_contraction``). Trains the `default` preset's evaluation field (with the
-options the capture asks for, and once without the contraction) on
-``--train-views`` evenly spaced frames for ``--steps`` steps and scores the
-test frames: PSNR over the whole image and over the ball's pixels (dilated
-as ``psnr_fg`` is), from the ball's exact silhouette.
+backgrounds are neither white nor transparent. Trains the `default` preset's
+evaluation field on ``--train-views`` evenly spaced frames for ``--steps``
+steps, in the forms ``--fields`` names: ``chosen``, with the options the
+capture asks for (``DatasetSource.field_options``: a directional
+background); ``box``, the box and one background colour alone;
+``contracted``, the scene contraction
+(``DatasetSource.suggested_contraction``). Scores the test frames: PSNR over
+the whole image and over the ball's pixels (dilated as ``psnr_fg`` is), from
+the ball's exact silhouette.
 
 Usage::
 
     PYTHONPATH=. python benchmarks/unbounded_quality.py [--res 200] [--train-views 20] [--steps 1500]
-        [--out benchmarks/results/unbounded_quality.json]
+        [--fields chosen,box,contracted] [--out benchmarks/results/unbounded_quality.json]
 """
 
 from __future__ import annotations
@@ -103,17 +106,21 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
                     help="a FieldConfig option over the preset's, for both fields")
-    ap.add_argument("--contracted-only", action="store_true", help="skip the field without the contraction")
+    ap.add_argument("--fields", default="chosen,box,contracted", help="comma-separated forms of the field: "
+                    "chosen (the capture's options), box (one background colour), contracted")
     ap.add_argument("--out", default="benchmarks/results/unbounded_quality.json")
     args = ap.parse_args(argv)
+    names = [n.strip() for n in args.fields.split(",") if n.strip()]
+    if not names or set(names) - {"chosen", "box", "contracted"}:
+        ap.error(f"--fields: comma-separated among chosen, box, contracted, got {args.fields!r}")
     results = {}
     with tempfile.TemporaryDirectory() as tmp:
         src = DatasetSource.from_path(write_capture(Path(tmp), args.views, args.res))
-        asked = {"contraction": src.suggested_contraction()}
+        forms = {"chosen": src.field_options(), "box": {}, "contracted": {"contraction": src.suggested_contraction()}}
         train = [src.candidate_view(int(i)) for i in
                  np.linspace(0, len(src.candidates), args.train_views, endpoint=False)]
         test = [src.heldout_view(i) for i in range(len(src.heldout))]
-        fields = (("contracted", asked), ("box only", {"contraction": 0.0}))[:1 if args.contracted_only else 2]
+        fields = [(name, forms[name]) for name in names]
         for name, extra in fields:
             config = FieldConfig.from_options(args.set, **FieldConfig.preset("default", width=args.res,
                                                                               **extra).to_dict())

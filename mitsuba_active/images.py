@@ -8,6 +8,7 @@ raise :class:`~mitsuba_active.errors.UserError` naming the file.
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import cv2
@@ -16,7 +17,7 @@ import numpy as np
 from PIL import Image
 
 from .errors import UserError
-from .imageio_utils import exr_size, linear_to_srgb, read_exr
+from .imageio_utils import exr_size, linear_to_srgb, read_exr, srgb_to_linear
 
 #: EXIF orientation (tag 274) -> (transpose first, then rotate by 90 degrees this many times counter-clockwise,
 #: then flip left-right): the operations that turn the stored pixels upright.
@@ -62,10 +63,46 @@ def read_rgb(path: Path, white_background: bool, size=None) -> tuple[np.ndarray,
         rgb, alpha = _exr_colour(path, white_background)
         alpha = None if alpha is None else np.clip(alpha, 0.0, 1.0).astype(np.float32)
         return np.clip(rgb, 0.0, 1.0).astype(np.float32), alpha
+    return _composited(_pixels(path, size), white_background)
+
+
+def read_linear_rgb(path: Path, white_background: bool, size=None) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`read_rgb`'s colour in linear light (float32) and its alpha. An 8- or
+    16-bit image without alpha (a photograph) is converted through a table of
+    its 256 or 65,536 levels: the same values, several times faster than the
+    transfer function on every pixel of a phone-sized frame."""
+    if path.suffix.lower() == ".exr":
+        rgb, alpha = read_rgb(path, white_background, size)
+        return srgb_to_linear(rgb), alpha
+    img = _pixels(path, size)
+    if img.dtype in (np.uint8, np.uint16) and (img.ndim == 2 or img.shape[-1] in (1, 3)):
+        lin = _linear_levels(img.dtype)[img]
+        lin = lin.reshape(*img.shape[:2], -1)
+        return (np.repeat(lin, 3, axis=-1) if lin.shape[-1] == 1 else lin), None
+    rgb, alpha = _composited(img, white_background)
+    return srgb_to_linear(rgb), alpha
+
+
+@functools.cache
+def _linear_levels(dtype) -> np.ndarray:
+    """(levels,) float32: the linear light of every level of an unsigned ``dtype``, as
+    :func:`read_rgb` then :func:`~mitsuba_active.imageio_utils.srgb_to_linear` give it."""
+    top = np.iinfo(dtype).max
+    return srgb_to_linear(np.arange(top + 1, dtype=np.float32) / np.float32(top))
+
+
+def _pixels(path: Path, size=None) -> np.ndarray:
+    """The stored pixels of a PNG or JPEG (H, W[, C]), turned upright by their EXIF
+    orientation unless ``size`` (width, height) is the stored pixels' size and not the upright one."""
     raw, orientation = _read_pixels(path)
     img = _upright(raw, orientation)
     if size is not None and img.shape[1::-1] != tuple(size) and raw.shape[1::-1] == tuple(size):
         img = raw
+    return img
+
+
+def _composited(img: np.ndarray, white_background: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """Stored pixels (H, W[, C]) as (H, W, 3) float32 sRGB in [0, 1], alpha composited, and the alpha or None."""
     scale = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(img.dtype, 1.0)
     img = img.astype(np.float32) / scale
     if img.ndim == 2:

@@ -12,8 +12,9 @@ import pytest
 
 from mitsuba_active.cameras import MITSUBA_TO_OPENCV, camera_rays
 from mitsuba_active.colmap import BOUNDS_PERCENTILES
-from mitsuba_active.datasets import DatasetSource, mitsuba_to_opengl, open_source
+from mitsuba_active.datasets import DatasetSource, area_downscale, mitsuba_to_opengl, open_source
 from mitsuba_active.errors import UserError
+from mitsuba_active.images import read_linear_rgb, read_rgb
 from mitsuba_active.imageio_utils import linear_to_srgb, srgb_to_linear
 from mitsuba_active.lens import capture_through
 
@@ -122,7 +123,8 @@ def test_aabb_scale_gives_instant_ngps_box_and_a_contraction(tmp_path):
     assert np.allclose(src.bbox_min, -0.5 / 0.33) and np.allclose(src.bbox_max, 0.5 / 0.33)
     write_dataset(tmp_path / "b", n=4, extra={"aabb_scale": 16, "scale": 0.5, "offset": [0.5, 0.5, 0.5]})
     src = DatasetSource.from_path(tmp_path / "b")
-    assert np.allclose(src.bbox_max, 1.0) and src.suggested_contraction() == 16.0 and src.field_options() == {}
+    assert np.allclose(src.bbox_max, 1.0) and src.suggested_contraction() == 16.0
+    assert src.field_options() == {"background_resolution": 16}
     write_dataset(tmp_path / "c", n=4, extra={"aabb_scale": 16, "aabb": [[-1, -1, -1], [2, 2, 2]]})
     assert np.allclose(DatasetSource.from_path(tmp_path / "c").bbox_max, 2.0)  # the aabb wins
 
@@ -379,3 +381,33 @@ def test_bad_captures_are_one_line_and_exit_2(tmp_path, renders, make, message):
                           str(tmp_path / "out")], capture_output=True, text=True, timeout=300)
     assert run.returncode == 2 and message.split(" is ")[0].split(" must")[0] in run.stderr
     assert len(run.stderr.strip().splitlines()) == 1 and not (tmp_path / "out").exists()
+
+
+def test_linear_colour_through_the_table_matches_the_transfer_function(tmp_path, rng):
+    """8-bit, 16-bit and grey images go through a table of their levels; the values are those of
+    read_rgb then srgb_to_linear. RGBA images (composited first) and EXR keep that path."""
+    images = {"a.jpg": (rng.random((6, 8, 3)) * 255).astype(np.uint8),
+              "b.png": (rng.random((6, 8, 3)) * 65535).astype(np.uint16),
+              "c.png": (rng.random((6, 8)) * 255).astype(np.uint8),
+              "d.png": (rng.random((6, 8, 4)) * 255).astype(np.uint8)}
+    for name, pixels in images.items():
+        path = tmp_path / name
+        if pixels.dtype == np.uint16:
+            cv2.imwrite(str(path), pixels[..., ::-1])
+        else:
+            iio.imwrite(path, pixels)
+        for white in (True, False):
+            lin, alpha = read_linear_rgb(path, white)
+            rgb, alpha2 = read_rgb(path, white)
+            assert lin.shape == (6, 8, 3) and lin.dtype == np.float32
+            assert np.array_equal(lin, srgb_to_linear(rgb)), name
+            assert (alpha is None) == (alpha2 is None) == (name != "d.png")
+
+
+def test_area_downscale_is_the_block_mean(rng):
+    for shape in ((48, 40, 3), (48, 40), (48, 40, 4), (48, 40, 5)):
+        img = rng.random(shape).astype(np.float32)
+        ref = img.astype(np.float64).reshape(6, 8, 5, 8, *shape[2:]).mean(axis=(1, 3))
+        out = area_downscale(img, 8)
+        assert out.shape == ref.shape and out.dtype == np.float32 and np.allclose(out, ref, atol=1e-6)
+        assert area_downscale(img, 1) is img

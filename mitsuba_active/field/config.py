@@ -23,6 +23,12 @@ MAX_BATCH_SAMPLES = 1 << 24
 #: beyond any use: each member holds its own tables and Adam moments).
 MAX_MEMBERS = 64
 MAX_STEPS = 10_000_000
+#: Most rows of the directional background's map (``background_resolution``).
+MAX_SKY_RESOLUTION = 256
+#: Rows of the map that a capture with a far background gets: a texel of
+#: about 11 degrees is seen by several of 20 views, where finer maps only
+#: memorise each view's own backdrop (docs/field.md, "Unbounded scenes").
+CAPTURE_SKY_RESOLUTION = 16
 #: Farthest reach of a contracted field, in half box sizes (past it the
 #: contracted shell is thinner than float32 resolves near its edge).
 MAX_CONTRACTION = 1e5
@@ -155,6 +161,12 @@ class FieldConfig:
         in contracted space (linear in disparity from the centre) up to
         ``F``; rays that miss the box get all of them there. Distances stay
         metric (see docs/field.md, "Unbounded scenes").
+    background_resolution:
+        0 (the default): each member's background is one learnt colour.
+        ``N``: plus a learnt latitude-longitude map of ``N x 2N`` texels,
+        so that every ray's background depends on its direction, as the
+        world beyond a real capture's box does (see
+        :mod:`mitsuba_active.field.sky`).
 
     Rendering
     ---------
@@ -251,6 +263,7 @@ class FieldConfig:
     density_bias: float = -1.0
     bbox_padding: float = 0.05
     contraction: float = 0.0
+    background_resolution: int = 0
     n_samples: int = 64
     near: float = 0.0
     render_batch: int = 4096
@@ -330,6 +343,9 @@ class FieldConfig:
             raise UserError(f"FieldConfig.occlusion_fraction must be in (0, 1], got {self.occlusion_fraction}")
         if self.random_background not in (0, 1):
             raise UserError(f"FieldConfig.random_background must be 0 (off) or 1, got {self.random_background}")
+        if not 0 <= int(self.background_resolution) <= MAX_SKY_RESOLUTION:
+            raise UserError(f"FieldConfig.background_resolution must be in [0, {MAX_SKY_RESOLUTION}] (0: one colour), "
+                            f"got {self.background_resolution}")
         if not 0 <= int(self.occupancy_resolution) <= 256:
             raise UserError("FieldConfig.occupancy_resolution must be in [0, 256] (0: off)")
         if not self.occupancy_threshold > 0 or int(self.occupancy_interval) < 1 \

@@ -30,7 +30,8 @@ from .grid import GridLayout, init_grid
 from .io import load_ensemble, save_ensemble
 from .occupancy import DECAY, cell_opacity
 from .regularisers import ray_regularisers
-from .render import FieldParams, hash_u32, render_flat, render_members, uniform_from_u32
+from .render import FieldParams, background_colour, hash_u32, render_flat, render_members, uniform_from_u32
+from .sky import sky_size
 from .view import n_coefficients, view_layout
 
 
@@ -154,10 +155,12 @@ class Ensemble:
         subclass with other starting values changes it here)."""
         return grid
 
-    def _make_optimizer(self, grid, bg, adam_state=None, view=None):
-        """Adam over the grid table (K, E, 4), the backgrounds (K, 3) and, with
-        ``view_degree``, the view-dependent colour's table (flat, as
-        :meth:`view_numpy` gives it; None: zeros); ``adam_state`` as saved."""
+    def _make_optimizer(self, grid, bg, adam_state=None, view=None, sky=None):
+        """Adam over the grid table (K, E, 4), the backgrounds (K, 3), with
+        ``view_degree`` the view-dependent colour's table (flat, as
+        :meth:`view_numpy` gives it; None: zeros) and with
+        ``background_resolution`` the directional background's (as
+        :meth:`sky_numpy` gives it; None: zeros); ``adam_state`` as saved."""
         cfg = self.config
         self._opt = dr.opt.Adam(lr=cfg.lr, beta_1=cfg.beta_1, beta_2=cfg.beta_2,
                                 epsilon=cfg.epsilon)
@@ -168,6 +171,10 @@ class Ensemble:
         if cfg.view_degree > 0:  # a diffuse start: the residual is 0 until views ask for it
             self._opt["view"] = mi.Float(np.zeros(self.view_size, np.float32) if view is None else
                                          np.ascontiguousarray(view, np.float32).ravel())
+        if cfg.background_resolution > 0:  # the constant background until views ask for more
+            self._opt["sky"] = mi.Float(np.zeros(self.sky_size, np.float32) if sky is None else
+                                        np.ascontiguousarray(sky, np.float32).ravel())
+            self._opt.set_learning_rate({"sky": cfg.lr_background})
         self._opt.set_learning_rate({"background": cfg.lr_background})
         if adam_state is not None:
             for key, (t, m, v) in adam_state.items():
@@ -195,7 +202,9 @@ class Ensemble:
                            view=self._opt["view"] if cfg.view_degree > 0 else None,
                            view_degree=int(cfg.view_degree), view_resolution=int(cfg.view_resolution),
                            contraction=float(cfg.contraction),
-                           near=float(cfg.near) * float(np.linalg.norm(np.subtract(self.box_max, self.box_min))))
+                           near=float(cfg.near) * float(np.linalg.norm(np.subtract(self.box_max, self.box_min))),
+                           sky=self._opt["sky"] if cfg.background_resolution > 0 else None,
+                           sky_resolution=int(cfg.background_resolution))
 
     @property
     def view_size(self) -> int:
@@ -209,6 +218,16 @@ class Ensemble:
         """The view-dependent colour's table as flat float32 (:attr:`view_size`,),
         laid out as in memory (see :mod:`.view`); empty for a diffuse field."""
         return self._numpy("view") if self.config.view_degree > 0 else np.zeros(0, np.float32)
+
+    @property
+    def sky_size(self) -> int:
+        """Floats of the directional background's map, all members (0 without one)."""
+        return sky_size(self.config.background_resolution, self.n_members) if self.config.background_resolution else 0
+
+    def sky_numpy(self) -> np.ndarray:
+        """The directional background's map as flat float32 (:attr:`sky_size`,), laid
+        out as in memory (see :mod:`.sky`); empty without one."""
+        return self._numpy("sky") if self.config.background_resolution > 0 else np.zeros(0, np.float32)
 
     def options(self) -> dict:
         """Options beyond :class:`FieldConfig` that a saved file keeps (none here)."""
@@ -439,11 +458,10 @@ class Ensemble:
         key = dr.opaque(mi.UInt32, (self.seed * 0x2C1B3C6D + self._step * 0x297A2D39 + 7) & 0xFFFFFFFF)
         i = dr.arange(mi.UInt32, dr.width(idx)) * 3
         colour = mi.Color3f(*[uniform_from_u32(hash_u32(hash_u32(i + c) ^ key)) for c in range(3)])
-        bgs = self._opt["background"]
+        params, d = self.params(), dr.gather(mi.Vector3f, self._rays["d"], idx)
         swapped = []
         for k, out in enumerate(outs):
-            logits = dr.gather(mi.Vector3f, bgs, dr.zeros(mi.UInt32, dr.width(idx)) + k)
-            bg = mi.Color3f(*[dr.rcp(1.0 + dr.exp(-logits[c])) for c in range(3)])
+            bg = background_colour(params, d, k, dr.width(idx))
             rgb = out["rgb"] + dr.select(empty, (1.0 - out["opacity"]) * (colour - bg), 0.0)
             swapped.append({**out, "rgb": rgb})
         return dr.select(empty, colour, target), swapped

@@ -29,6 +29,9 @@ key                    dtype / shape     meaning
 ``view``               float32 (V,)      the view-dependent colour's table, as in
                                          memory (only with ``view_degree``; see
                                          :mod:`.view`), with ``adam_{m,v}_view``
+``sky``                float32 (B,)      the directional background's map, as in
+                                         memory (only with ``background_resolution``;
+                                         see :mod:`.sky`), with ``adam_{m,v}_sky``
 ``occupancy``          float32 (G,G,G)   decaying max of cell opacities, [z,y,x]
                                          (only with empty-space skipping active)
 ``occupancy_age``      int64 ()          steps since the grid was reset (with
@@ -77,6 +80,9 @@ def save_ensemble(ens, path) -> Path:
     if ens.config.view_degree > 0:
         arrays["view"] = ens.view_numpy()
         keys += ("view",)
+    if ens.config.background_resolution > 0:
+        arrays["sky"] = ens.sky_numpy()
+        keys += ("sky",)
     st = ens._opt.state
     arrays["adam_t"] = np.int64(int(np.array(st["grid"][3][0]).ravel()[0]))
     for key in keys:
@@ -159,10 +165,16 @@ def _ensemble_from(cls, z, path):
         if view.shape != (ens.view_size,):
             raise UserError(f"{path}: view table shape {view.shape} does not match its config")
         keys += ("view",)
+    sky = None
+    if cfg.background_resolution > 0:
+        sky = z["sky"]
+        if sky.shape != (ens.sky_size,):
+            raise UserError(f"{path}: sky map shape {sky.shape} does not match its config")
+        keys += ("sky",)
     adam = None
     if "adam_t" in z:
         adam = {key: (int(z["adam_t"]), z[f"adam_m_{key}"], z[f"adam_v_{key}"]) for key in keys}
-    ens._make_optimizer(grid, z["background"], adam, view)
+    ens._make_optimizer(grid, z["background"], adam, view, sky)
     ens._step = int(z["step"])
     if "occupancy" in z:
         G = int(cfg.occupancy_resolution)

@@ -32,6 +32,7 @@ from ..errors import UserError
 from .grid import GridLayout, accumulate, query
 from .occupancy import occupied
 from .regularisers import blocked_regulariser
+from .sky import sky_logits
 from .view import view_residual
 
 
@@ -59,6 +60,9 @@ class FieldParams:
             box sizes (``FieldConfig.contraction``).
         near: distance from a ray's origin where its samples may start
             (scene units; ``FieldConfig.near`` times the diagonal).
+        sky: ``mi.Float`` table of the directional background (see
+            :mod:`.sky`), or None (one colour per member).
+        sky_resolution: its rows (``FieldConfig.background_resolution``).
     """
 
     grid: object
@@ -76,6 +80,8 @@ class FieldParams:
     view_resolution: int = 0
     contraction: float = 0.0
     near: float = 0.0
+    sky: object = None
+    sky_resolution: int = 0
 
     @property
     def diag(self) -> float:
@@ -657,10 +663,7 @@ def _over_background(params: FieldParams, s: dict, sums: list, members: list, re
     the samples ``s``, with the view-dependent colour where the field has it."""
     outs = []
     for member, (rgb, dsum, opac, w, reg) in zip(members, sums):
-        # One background index per ray: the gradient of a background read once and
-        # broadcast to every ray would take a reduction kernel per channel and member.
-        bg = dr.gather(mi.Vector3f, params.background, dr.zeros(mi.UInt32, dr.width(opac)) + mi.UInt32(member))
-        bg = mi.Color3f(*[dr.rcp(1.0 + dr.exp(-bg[c])) for c in range(3)])
+        bg = background_colour(params, s["d"], member, dr.width(opac))
         distance = dsum / dr.maximum(opac, 1e-6)
         rgb = rgb + (1.0 - opac) * bg
         if params.view is not None:
@@ -674,6 +677,18 @@ def _over_background(params: FieldParams, s: dict, sums: list, members: list, re
             out["regulariser"] = reg
         outs.append(out)
     return outs
+
+
+def background_colour(params: FieldParams, d, member, n: int):
+    """Member ``member``'s background colour (``mi.Color3f``, ``n`` rays) behind
+    rays along unit directions ``d`` (``mi.Vector3f``): its constant colour, plus
+    the directional map's residual where the field has one (see :mod:`.sky`)."""
+    # One background index per ray: the gradient of a background read once and
+    # broadcast to every ray would take a reduction kernel per channel and member.
+    logits = mi.Color3f(dr.gather(mi.Vector3f, params.background, dr.zeros(mi.UInt32, n) + mi.UInt32(member)))
+    if params.sky is not None:
+        logits = logits + sky_logits(params.sky, params.sky_resolution, params.n_members, mi.Vector3f(d), member)
+    return mi.Color3f(*[dr.rcp(1.0 + dr.exp(-logits[c])) for c in range(3)])
 
 
 def _view_colour(params: FieldParams, s: dict, distance, member):

@@ -39,6 +39,13 @@ def test_rooms_get_the_room_options_objects_do_not(shared_data, sphere_xml):
     config = source_field_config(cbox, RunConfig(scene="x", resolution=16, distance_weight=10.0), False)
     assert config.near == ROOM_DISTANCE_OPTIONS.get("near", 0.0)
     assert config.n_levels == ROOM_DISTANCE_OPTIONS.get("n_levels", 2)  # else the preset's at 16 pixels
+    # At 128 pixels the preset's evaluation field is view-dependent with three levels: a room's options replace it.
+    cbox128 = tiny_source(shared_data / "mitsuba" / "cbox" / "cbox.xml", n_candidates=6, n_heldout=2, resolution=128)
+    for weight, options in ((0.0, ROOM_OPTIONS), (10.0, ROOM_DISTANCE_OPTIONS)):
+        preset = FieldConfig.preset("default", width=128)
+        assert any(getattr(preset, k) != v for k, v in options.items())
+        config = source_field_config(cbox128, RunConfig(scene="x", resolution=128, distance_weight=weight), False)
+        assert all(getattr(config, k) == v for k, v in options.items())
     # The run's own field options come first.
     mine = {"n_levels": 3, "near": 0.0}
     config = source_field_config(cbox, RunConfig(scene="x", resolution=16, field=mine))

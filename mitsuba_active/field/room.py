@@ -3,11 +3,13 @@
 Cameras inside a room see no ray that meets nothing, so no view says which
 space is empty, and a field fitted to the colours alone fills the room with
 fog: each view is painted on density just in front of its own camera, and
-the finer levels let every view keep its own (docs/field.md, "Rooms"). A
-room's fields trained on colour alone start their samples a little away
-from the camera (``FieldConfig.near``) and keep to the two coarse levels;
-trained on the distance maps too, they keep their preset (a near distance
-cuts the surfaces that cameras stand close to).
+the finer levels, or a colour that depends on the view direction, let every
+view keep its own (docs/field.md, "Rooms"). A room's fields trained on colour
+alone start their samples a little away from the camera
+(``FieldConfig.near``), keep to the two coarse levels, a diffuse colour and
+no distortion loss; trained on the distance maps too, they keep the preset's
+grid with a diffuse colour (a near distance would cut the surfaces that
+cameras stand close to).
 """
 
 from __future__ import annotations
@@ -16,8 +18,8 @@ import numpy as np
 
 #: Field options of rooms seen from inside, trained on colour alone and with
 #: the distance loss (:func:`room_options`; measured in docs/field.md, "Rooms").
-ROOM_OPTIONS = {"n_levels": 2, "near": 0.05}
-ROOM_DISTANCE_OPTIONS: dict = {}
+ROOM_OPTIONS = {"n_levels": 2, "near": 0.05, "view_degree": 0, "distortion_weight": 0.0}
+ROOM_DISTANCE_OPTIONS = {"view_degree": 0}
 
 
 def cameras_inside(cameras, bbox_min, bbox_max) -> bool:

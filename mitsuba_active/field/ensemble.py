@@ -377,7 +377,8 @@ class Ensemble:
         n_rays = dr.opaque(mi.UInt32, self._n_rays)
         i = dr.arange(mi.UInt32, N)
         if cfg.coherent_batches:  # one ray per stratum of the sorted rays (see .batch)
-            idx = dr.gather(mi.UInt32, self._rays["order"], stratified_indices(N, n_rays, hash_u32(hash_u32(i) ^ key)))
+            strata = stratified_indices(N, n_rays, hash_u32(hash_u32(i) ^ key))
+            idx = dr.gather(mi.UInt32, self._rays["order"], strata)
         else:  # mul_hi maps a 32-bit hash uniformly onto [0, M) without modulo bias.
             idx = dr.mul_hi(hash_u32(hash_u32(i) ^ key), n_rays)
         jitter = uniform_from_u32(hash_u32(hash_u32(dr.arange(mi.UInt32, N * S)) ^ key2))

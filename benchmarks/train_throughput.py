@@ -38,10 +38,11 @@ Diagnostics explain how the step time grows with K:
 4-level grid of earlier versions: ``--set n_levels=4``. The default grid is
 also that of the ``fast`` preset, of every planner's ensemble and of the
 ``default`` preset's evaluation field up to 64-pixel images, whose other
-settings (a lower learning rate, the empty-ray loss) change the cost little;
-the ``default`` preset's field for 200-pixel images is ``--set n_levels=4
---set log2_table_size=18 --set n_samples=256`` (without its empty-space
-skipping, which these synthetic rays would not exercise alike).
+settings (a lower learning rate, the empty-ray loss) change the cost little.
+``--preset default --width 200`` times the ``default`` preset's field for
+200-pixel images (its 12-level grid, 256 samples a ray, view-dependent colour
+and distortion loss), without its empty-space skipping, which these
+synthetic rays would not exercise alike.
 """
 
 from __future__ import annotations
@@ -65,6 +66,7 @@ import numpy as np  # noqa: E402
 
 from mitsuba_active.errors import UserError  # noqa: E402
 from mitsuba_active.field import Ensemble, FieldConfig  # noqa: E402
+from mitsuba_active.field.config import FIELD_PRESETS  # noqa: E402
 
 
 def synthetic_rays(n_views=20, width=64, height=64, radius=3.0, sphere=0.6, seed=0):
@@ -236,19 +238,26 @@ def main(argv=None):
     ap.add_argument("--members", type=int, nargs="+", default=[1, 4])
     ap.add_argument("--memory-steps", type=int, default=0,
                     help="also track RSS over this many K=1 steps (e.g. 2000)")
+    ap.add_argument("--preset", choices=list(FIELD_PRESETS), default=None,
+                    help="a run preset's evaluation field for --width pixels, skipping off [FieldConfig's defaults]")
+    ap.add_argument("--width", type=int, default=200, help="the images' width the preset's grid follows")
     ap.add_argument("--set", action="append", default=[], metavar="OPTION=VALUE",
                     help="a FieldConfig option, e.g. --set n_levels=4 (repeatable)")
     ap.add_argument("--out", default="benchmarks/results/train_throughput.json")
     args = ap.parse_args(argv)
 
+    base = {}
+    if args.preset:  # these synthetic rays would not exercise its empty-space skipping alike
+        base = {**FIELD_PRESETS[args.preset].config_options(args.width), "occupancy_resolution": 0}
     try:
-        cfg = FieldConfig.from_options(args.set)  # 4096 rays x 64 samples by default
+        cfg = FieldConfig.from_options(args.set, **base)  # 4096 rays x 64 samples by default
     except UserError as exc:
         ap.error(str(exc))
     if cfg.occupancy_resolution > 0:
         ap.error("the sample counts assume every sample is evaluated: leave occupancy_resolution at 0")
     rays = synthetic_rays()
-    result = dict(batch_rays=cfg.batch_rays, n_samples=cfg.n_samples,
+    result = dict(preset=args.preset, width=args.width if args.preset else None,
+                  batch_rays=cfg.batch_rays, n_samples=cfg.n_samples,
                   config=cfg.to_dict(), machine=platform.processor() or platform.machine(),
                   cpu_count=os.cpu_count(), variant=__import__("mitsuba").variant(),
                   sample_counting="K * batch_rays * n_samples per step: every stratified "

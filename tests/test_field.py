@@ -695,7 +695,7 @@ def test_each_preset_trains_saves_and_loads(name, tmp_path):
     the default's hashed levels and skipping included."""
     cfg = FieldConfig.preset(name, width=400, log2_table_size=12, n_samples=32, batch_rays=512,
                              render_batch=1024, occupancy_warmup=2, occupancy_interval=2, lr=0.05)
-    assert cfg.n_levels == (5 if name == "default" else 2)
+    assert cfg.n_levels == (12 if name == "default" else 2)
     ens = Ensemble(*BOX, n_members=2, config=cfg, seed=1)
     a = views([[0.0, 0.3, 2.2], [2.2, 0.3, 0.0]], width=16, height=16)
     ens.set_rays(*a)
@@ -712,7 +712,10 @@ def test_each_preset_trains_saves_and_loads(name, tmp_path):
 
 def test_the_default_grid_follows_the_images_width():
     grids = {w: FieldConfig.preset("default", width=w) for w in (32, 64, 100, 200, 800)}
-    assert [grids[w].n_levels for w in grids] == [2, 2, 3, 4, 5]
+    assert [grids[w].n_levels for w in grids] == [2, 2, 12, 12, 12]
+    # From 16 cells to half the width (at most 256), the hashed levels in 2^15 entries.
+    finest = [round(g.base_resolution * g.per_level_scale ** (g.n_levels - 1)) for g in grids.values()]
+    assert finest == [32, 32, 64, 128, 256] and grids[200].log2_table_size == 15
     assert [grids[w].n_samples for w in grids] == [64, 64, 128, 256, 256]
     assert [grids[w].occupancy_resolution > 0 for w in grids] == [False, False, True, True, True]
     assert [(grids[w].view_degree, grids[w].distortion_weight) for w in grids] == [(0, 0.0)] * 2 + [(1, 0.01)] * 3

@@ -1,8 +1,11 @@
 """Tests of the grid's hash encoding: its lookups and their gradient against
-NumPy references, and saving many hashed levels.
+NumPy references, saving many hashed levels, coarse-to-fine annealing and
+the coherent training batches.
 
 Tiny layouts (a dense level, then hashed ones), so the file runs in seconds.
 """
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -116,3 +119,80 @@ def test_many_levels_save_and_load(tmp_path):
     # Both carry on alike (the moments came back too).
     back.set_rays(*a, reset_occupancy=False)
     np.testing.assert_allclose(back.train(2), ens.train(2), rtol=1e-5)
+
+
+def test_stratified_indices_give_every_ray_equal_odds_within_its_lane_stratum():
+    """Lane i draws floor((i + u) M / N): over every distinct draw u of every lane
+    each of the M rays comes up exactly N times, and lane i only within its stratum."""
+    from mitsuba_active.field.batch import stratified_indices
+
+    N, M = 8, 21
+    counts = np.zeros(M, np.int64)
+    for r in range(M):  # u = ceil(r 2^32 / M) makes mul_hi(u, M) = r exactly
+        u = mi.UInt32(np.full(N, -(-(r << 32) // M), np.uint64).astype(np.uint32))
+        idx = np.array(stratified_indices(N, dr.opaque(mi.UInt32, M), u))
+        lane = np.arange(N)
+        assert np.all(idx >= lane * M // N) and np.all(idx <= ((lane + 1) * M - 1) // N)
+        assert np.all(np.diff(idx) >= 0)
+        counts += np.bincount(idx, minlength=M)
+    np.testing.assert_array_equal(counts, np.full(M, N))
+
+
+def test_ray_order_groups_each_camera_and_keeps_neighbouring_directions_close():
+    from mitsuba_active.field.batch import ray_order
+
+    o, d = views([[0.0, 0.3, 2.2], [2.2, 0.3, 0.0], [0.0, 2.2, 0.3]], width=16, height=16)[:2]
+    shuffle = np.random.default_rng(0).permutation(len(o))
+    o, d = o[shuffle], d[shuffle]
+    order = ray_order(o, d)
+    assert order.dtype == np.uint32 and np.array_equal(np.sort(order), np.arange(len(o)))
+    cams = np.unique(o[order], axis=0, return_inverse=True)[1].ravel()
+    assert np.count_nonzero(np.diff(cams)) == 2  # each camera's rays in one run
+    step = np.linalg.norm(np.diff(d[order], axis=0), axis=1)[np.diff(cams) == 0]
+    shuffled = np.linalg.norm(np.diff(d, axis=0), axis=1)
+    assert np.median(step) < 0.25 * np.median(shuffled)
+
+
+def test_coherent_batches_train_and_rerun_alike():
+    cfg = FieldConfig(n_levels=3, base_resolution=4, log2_table_size=9, n_samples=16, batch_rays=128,
+                      render_batch=256, lr=0.1, coherent_batches=1)
+    a = views([[0.0, 0.3, 2.2], [2.2, 0.3, 0.0]], width=12, height=12)
+    runs = []
+    for _ in range(2):
+        ens = Ensemble(*BOX, n_members=2, config=cfg, seed=3)
+        ens.set_rays(*a)
+        runs.append(ens.train(30))
+    np.testing.assert_allclose(runs[0], runs[1], rtol=1e-4)  # equal up to the threads' summation order
+    assert runs[0][-5:].mean() < 0.5 * runs[0][:5].mean()
+    # One step's rays come in the sorted order, one from each stratum.
+    idx, _ = ens._batch(0)
+    pos = np.argsort(np.array(ens._rays["order"]))[np.array(idx)]
+    lane, M = np.arange(128), len(a[0])
+    assert np.all(pos >= lane * M // 128) and np.all(pos <= ((lane + 1) * M - 1) // 128)
+
+
+def test_annealing_masks_the_fine_levels_early_and_not_later():
+    from mitsuba_active.field.grid import anneal_weights
+
+    np.testing.assert_allclose(anneal_weights(3, 100, 0), [1, 0, 0])
+    np.testing.assert_allclose(anneal_weights(3, 100, 75), [1, 1, 0.5])
+    np.testing.assert_allclose(anneal_weights(3, 100, 100), [1, 1, 1])
+    cfg = dataclasses.replace(HASHED, anneal_steps=20, lr=0.1)
+    ens = Ensemble(*BOX, n_members=1, config=cfg, seed=0)
+    ens.set_rays(*views([[0.0, 0.3, 2.2]], width=8, height=8))
+    table = ens.grid_numpy()
+    layout = ens.params().layout
+    u = mi.Point3f(np.random.default_rng(1).uniform(size=(3, 50)).astype(np.float32))
+    # At step 0 the fine levels' entries change nothing (and get no gradient).
+    coarse_only = table.copy()
+    coarse_only[:, ens.layout.offsets[1]:] = 0.0
+    early = np.array(query(mi.Float(table.ravel()), layout, 1, u, 0))
+    np.testing.assert_allclose(early, np.array(query(mi.Float(coarse_only.ravel()), ens.layout, 1, u, 0)),
+                               atol=1e-6)
+    grad = dr.zeros(mi.Float, table.size)
+    accumulate(grad, layout, 1, u, [mi.Float(1.0)] * 4, 0)
+    assert np.all(np.array(grad)[ens.layout.offsets[1] * 4:] == 0) and np.any(np.array(grad) != 0)
+    ens.train(20)
+    assert ens.params().layout.weights is None
+    late = np.array(query(mi.Float(table.ravel()), ens.params().layout, 1, u, 0))
+    assert np.abs(late - early).max() > 1e-3

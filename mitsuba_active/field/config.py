@@ -34,25 +34,37 @@ CAPTURE_SKY_RESOLUTION = 16
 MAX_CONTRACTION = 1e5
 
 
+#: Levels of the hash grid from 100-pixel images on, the cells per axis of its
+#: coarsest, and log2 of each hashed level's table (2^15 entries of 4 floats,
+#: 512 KiB a member: a level's table stays in the L2 cache).
+HASH_LEVELS = 12
+HASH_BASE = 16
+HASH_LOG2_TABLE = 15
+
+
 def image_scaled_grid(width: int) -> dict:
-    """Grid options for images ``width`` pixels across: the finest level has
-    about half as many cells across as the images have pixels (2 to 5 levels,
-    16 to 256 cells), a ray twice as many samples as that level has cells
-    (64 to 256), and empty space is skipped from three levels on, where the
-    colour also depends on the view (degree 1) and the distortion loss (0.01)
-    keeps the weights compact.
+    """Grid options for images ``width`` pixels across.
+
+    The finest level has about half as many cells across as the images have
+    pixels (32 to 256 cells), a ray twice as many samples as that level has
+    cells (64 to 256). Up to 64 pixels: two dense levels (16, 32 cells).
+    From 100 pixels: a hash grid of 12 levels from 16 cells to that finest,
+    in equal ratios, the levels whose vertices fit 2^15 entries dense, the
+    others hashed into 2^15; empty space is skipped, the colour also depends
+    on the view (degree 1) and the distortion loss (0.01) keeps the weights
+    compact.
 
     Finer levels than the images resolve only memorise the few views there
     are: at 64 pixels, 20 views of the bundled scene scored 22.9 dB held out
     with five levels and 30.7 dB with two (docs/field.md).
     """
     finest = min(256, max(32, 1 << max(0, round(math.log2(max(1, int(width)) / 2)))))
-    n_levels = int(round(math.log2(finest / 16))) + 1
-    grid = {"n_levels": n_levels, "n_samples": min(256, 2 * finest),
-            "occupancy_resolution": 64 if n_levels >= 3 else 0}
-    if n_levels >= 3:  # images that resolve highlights and floaters: view-dependent colour, distortion loss
-        grid.update(view_degree=1, distortion_weight=0.01)
-    return grid
+    if finest <= 32:
+        return {"n_levels": 2, "n_samples": 64, "occupancy_resolution": 0}
+    return {"n_levels": HASH_LEVELS, "base_resolution": HASH_BASE,
+            "per_level_scale": (finest / HASH_BASE) ** (1.0 / (HASH_LEVELS - 1)),
+            "log2_table_size": HASH_LOG2_TABLE, "n_samples": min(256, 2 * finest),
+            "occupancy_resolution": 64, "view_degree": 1, "distortion_weight": 0.01}
 
 
 @dataclass(frozen=True)
@@ -93,12 +105,12 @@ FIELD_PRESETS = {
     "fast": FieldPreset({"n_levels": 2, "lr": 0.01, "empty_weight": 0.01}, {},
                         "two dense levels (16, 32 cells), 64 samples a ray: for tests and quick sweeps"),
     "default": FieldPreset({"n_levels": 2, "log2_table_size": 18, "lr": 0.01, "empty_weight": 0.01},
-                           {"n_levels": 2, "log2_table_size": 17, "n_samples": 64, "occupancy_resolution": 0,
-                            "view_degree": 0, "distortion_weight": 0.0},
-                           "a grid that follows the images' width: fast's up to 64 pixels; from 100, three "
-                           "levels, 128 samples a ray, empty-space skipping, view-dependent colour and the "
-                           "distortion loss; from 200, four levels and 256 samples; from 400, five levels "
-                           "(up to 256 cells)", image_scaled=True),
+                           {"n_levels": 2, "per_level_scale": 2.0, "log2_table_size": 17, "n_samples": 64,
+                            "occupancy_resolution": 0, "view_degree": 0, "distortion_weight": 0.0},
+                           "a grid that follows the images' width: fast's up to 64 pixels; from 100, a "
+                           "12-level hash grid from 16 cells to half the width (up to 256), twice as many samples "
+                           "a ray (up to 256), empty-space skipping, view-dependent colour and the distortion loss",
+                           image_scaled=True),
 }
 #: The preset of runs that do not name one.
 DEFAULT_PRESET = "default"
@@ -130,6 +142,13 @@ class FieldConfig:
         log2 of the maximum number of vertices stored per level. Levels whose
         ``(res+1)**3`` vertices fit are stored densely (no collisions); finer
         levels are hashed into a table of this size (Instant-NGP style).
+    anneal_steps:
+        Coarse-to-fine annealing of the levels (FreeNeRF's frequency mask
+        on grid levels): level 0 always counts, level ``l``'s features are
+        weighted ``clip(step / anneal_steps * (n_levels - 1) - l + 1, 0, 1)``,
+        so the finest reaches 1 at ``anneal_steps``; renders use the current
+        weights, and empty-space skipping waits until it is over. 0 (the
+        default) turns it off.
     n_features:
         Features per vertex; fixed at 4: (density logit, red, green, blue
         logits). The levels' trilinearly interpolated features are summed,
@@ -191,6 +210,12 @@ class FieldConfig:
     batch_rays:
         Rays per member per step, sampled uniformly with replacement from all
         training rays (4096 by default).
+    coherent_batches:
+        1: each step draws one ray from each of ``batch_rays`` equal strata
+        of the training rays sorted by camera position and direction, so
+        that neighbouring rays are marched together and share cached grid
+        cells (every ray is as likely as before; see
+        :mod:`mitsuba_active.field.batch`); 0 (the default): independent draws.
     lr, beta_1, beta_2, epsilon:
         Adam options (``drjit.opt.Adam``).
     lr_background:
@@ -258,6 +283,7 @@ class FieldConfig:
     base_resolution: int = 16
     per_level_scale: float = 2.0
     log2_table_size: int = 17
+    anneal_steps: int = 0
     n_features: int = 4
     init_scale: float = 0.1
     density_bias: float = -1.0
@@ -268,6 +294,7 @@ class FieldConfig:
     near: float = 0.0
     render_batch: int = 4096
     batch_rays: int = 4096
+    coherent_batches: int = 0
     lr: float = 0.05
     lr_background: float = 0.02
     beta_1: float = 0.9
@@ -312,6 +339,8 @@ class FieldConfig:
                      "render_batch", "batch_rays"):
             if int(getattr(self, name)) < 1:
                 raise UserError(f"FieldConfig.{name} must be >= 1")
+        if not 0 <= int(self.anneal_steps) <= MAX_STEPS:
+            raise UserError(f"FieldConfig.anneal_steps must be in [0, {MAX_STEPS}] (0: off)")
         if not 1 <= self.log2_table_size <= 26:
             raise UserError("FieldConfig.log2_table_size must be in [1, 26]")
         # Upper bounds where larger values only exhaust memory or overflow
@@ -341,6 +370,8 @@ class FieldConfig:
             raise UserError("FieldConfig.view_degree must be in [0, 2] (0: diffuse) and view_resolution in [1, 256]")
         if not 0 < self.occlusion_fraction <= 1:
             raise UserError(f"FieldConfig.occlusion_fraction must be in (0, 1], got {self.occlusion_fraction}")
+        if self.coherent_batches not in (0, 1):
+            raise UserError(f"FieldConfig.coherent_batches must be 0 (off) or 1, got {self.coherent_batches}")
         if self.random_background not in (0, 1):
             raise UserError(f"FieldConfig.random_background must be 0 (off) or 1, got {self.random_background}")
         if not 0 <= int(self.background_resolution) <= MAX_SKY_RESOLUTION:

@@ -15,6 +15,7 @@ seed and the compiled kernels are reused from step to step.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import drjit as dr
@@ -26,7 +27,8 @@ from ..checks import is_whole
 from ..errors import TrainingDiverged, UserError
 from ..variant import require_variant
 from .config import MAX_MEMBERS, MAX_STEPS, FieldConfig
-from .grid import GridLayout, init_grid
+from .batch import ray_order, stratified_indices
+from .grid import GridLayout, anneal_weights, init_grid
 from .io import load_ensemble, save_ensemble
 from .occupancy import DECAY, cell_opacity
 from .regularisers import ray_regularisers
@@ -194,7 +196,7 @@ class Ensemble:
         self._check_variant()
         cfg = self.config
         return FieldParams(grid=self._opt["grid"], background=self._opt["background"],
-                           layout=self.layout, box_min=self.box_min, box_max=self.box_max,
+                           layout=self._annealed_layout(), box_min=self.box_min, box_max=self.box_max,
                            n_samples=int(cfg.n_samples),
                            density_bias=float(cfg.density_bias),
                            n_members=self.n_members, occupancy=self._occupied,
@@ -205,6 +207,14 @@ class Ensemble:
                            near=float(cfg.near) * float(np.linalg.norm(np.subtract(self.box_max, self.box_min))),
                            sky=self._opt["sky"] if cfg.background_resolution > 0 else None,
                            sky_resolution=int(cfg.background_resolution))
+
+    def _annealed_layout(self) -> GridLayout:
+        """The layout with the levels' annealing weights (:func:`.grid.anneal_weights`) as opaque
+        scalars (kernels compile once for all steps), or as it is once they are all 1."""
+        w = anneal_weights(self.config.n_levels, self.config.anneal_steps, self._step)
+        if np.all(w == 1.0):
+            return self.layout
+        return dataclasses.replace(self.layout, weights=tuple(dr.opaque(mi.Float, float(x)) for x in w))
 
     @property
     def view_size(self) -> int:
@@ -327,6 +337,8 @@ class Ensemble:
         self._known_background = background is not None
         self._rays = dict(o=mi.Point3f(o.T), d=mi.Vector3f(d.T), rgb=mi.Color3f(c.T),
                           distance=mi.Float(dist), hit=mi.Bool(h), empty=mi.Bool(e))
+        if self.config.coherent_batches:
+            self._rays["order"] = mi.UInt32(ray_order(o, d))
         dr.eval(self._rays)
         self._n_rays = m
         if reset_occupancy:
@@ -385,8 +397,11 @@ class Ensemble:
         key2 = dr.opaque(mi.UInt32, base ^ 0x5BD1E995)
         n_rays = dr.opaque(mi.UInt32, self._n_rays)
         i = dr.arange(mi.UInt32, N)
-        # mul_hi maps a 32-bit hash uniformly onto [0, M) without modulo bias.
-        idx = dr.mul_hi(hash_u32(hash_u32(i) ^ key), n_rays)
+        if cfg.coherent_batches:  # one ray per stratum of the sorted rays (see .batch)
+            strata = stratified_indices(N, n_rays, hash_u32(hash_u32(i) ^ key))
+            idx = dr.gather(mi.UInt32, self._rays["order"], strata)
+        else:  # mul_hi maps a 32-bit hash uniformly onto [0, M) without modulo bias.
+            idx = dr.mul_hi(hash_u32(hash_u32(i) ^ key), n_rays)
         jitter = uniform_from_u32(hash_u32(hash_u32(dr.arange(mi.UInt32, N * S)) ^ key2))
         return idx, jitter
 
@@ -477,7 +492,10 @@ class Ensemble:
             self._occupancy_age += 1
             # The age is counted after each step, so a warm-up of 0 refreshes after the first step.
             since = self._occupancy_age - max(1, int(cfg.occupancy_warmup))
-            if since >= 0 and since % int(cfg.occupancy_interval) == 0:
+            # Not while annealing: the coarse levels alone are too faint for the threshold.
+            annealing = self._step < int(cfg.anneal_steps)
+            if since >= 0 and not annealing and (since % int(cfg.occupancy_interval) == 0
+                                                 or self._occupancy is None):
                 self._refresh_occupancy()
 
     def train(self, steps: int, progress: bool = False) -> np.ndarray:

@@ -38,6 +38,8 @@ class GridLayout:
     offsets: tuple  #: first entry of each level
     dense: tuple  #: True where the level is stored without hashing
     n_entries: int  #: table entries per member (each holds 4 floats)
+    #: None, or one weight per level (opaque ``mi.Float`` scalars) scaling its features (annealing)
+    weights: tuple | None = None
 
     @property
     def n_grid_params(self) -> int:
@@ -77,6 +79,17 @@ def init_grid(layout: GridLayout, cfg: FieldConfig, seeds) -> np.ndarray:
     return out
 
 
+def anneal_weights(n_levels: int, anneal_steps: int, step: int) -> np.ndarray:
+    """Coarse-to-fine weights of the levels (float64 (n_levels,), in [0, 1]) at
+    training step ``step``: level 0 always 1, level ``l`` ramping linearly
+    from 0 to 1 over the ``l``-th of ``n_levels - 1`` equal parts of
+    ``anneal_steps`` steps; all 1 when ``anneal_steps`` is 0 or has passed."""
+    L, n = int(n_levels), int(anneal_steps)
+    if n == 0 or step >= n or L == 1:
+        return np.ones(L)
+    return np.clip(step / n * (L - 1) - np.arange(L) + 1.0, 0.0, 1.0)
+
+
 def reduce_mode():
     """Scatter mode of the gathers' adjoint (the backward pass).
 
@@ -93,7 +106,8 @@ def reduce_mode():
 
 def corners(layout: GridLayout, u):
     """Yield (level, table entry index, trilinear weight) for the 8 corners
-    of every level around normalised positions ``u`` (``mi.Point3f``)."""
+    of every level around normalised positions ``u`` (``mi.Point3f``), the
+    weights scaled by ``layout.weights`` where given."""
     x_unit = dr.clip(mi.Vector3f(u), 0.0, 1.0)
     for level, r in enumerate(layout.resolutions):
         x = x_unit * float(r)
@@ -110,6 +124,8 @@ def corners(layout: GridLayout, u):
                 wa = f[a] if bits[a] else 1.0 - f[a]
                 w = wa if w is None else w * wa
                 c.append(x0[a] + 1 if bits[a] else x0[a])
+            if layout.weights is not None:
+                w = w * layout.weights[level]
             if layout.dense[level]:
                 idx = c[0] + c[1] * stride + c[2] * (stride * stride)
             else:

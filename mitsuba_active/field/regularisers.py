@@ -14,7 +14,7 @@ optical depths ``tau_i``:
   ``M`` samples in the box, ``sum_(i<M) tau_i`` (density there, in front of
   every training camera, is what few views fit with floaters).
 
-The marched compositing (:class:`.render._MarchedComposite`) computes their
+The marched compositing (:class:`.march._MarchedComposite`) computes their
 weighted sum as a fourth output with closed-form derivatives;
 :func:`blocked_regulariser` is the same from the blocked reductions' weights.
 """

@@ -79,7 +79,7 @@ def test_hybrid_batches_count_their_own_picks_as_captured():
 
 
 def test_hybrid_and_rfe_options_are_checked():
-    for bad in (dict(disagreement=-1), dict(min_opacity=1.0), dict(depth_resolution=0), dict(bootstrap="pixels")):
+    for bad in (dict(disagreement=-1), dict(min_opacity=1.0), dict(depth_resolution=0), dict(bootstrap="pixels"), dict(power=0)):
         with pytest.raises(UserError, match="hybrid|bootstrap"):
             make_planner("hybrid", **bad)
     for bad in (dict(min_opacity=-0.1), dict(bootstrap="all")):

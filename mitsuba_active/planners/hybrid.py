@@ -10,7 +10,9 @@ than the ensemble's distance along that camera's ray to it, plus
 ``DEPTH_TOLERANCE``, on a coarse depth map): pi where none sees it. A ray's worth is that angle's
 share of pi, times ``1 + disagreement * v / v_mean``, where ``v`` is the
 members' colour variance along the ray and ``v_mean`` its mean over all
-candidates' surface rays. A candidate's score is the mean worth of its R rays:
+candidates' surface rays (with ``power``, the angle's share is raised to
+it first: 2 favours the largest gaps). A candidate's score is the mean worth
+of its R rays:
 new surface, or surface seen only from far, counts most where the members
 disagree about it. Batches are greedy: each pick counts as captured (with
 the ensemble's depths) when the next is scored.
@@ -92,6 +94,7 @@ class HybridPlanner(Planner):
         depth_resolution: pixels across the captured cameras' depth maps
             (rendered by the ensemble) that decide which points they see.
         bootstrap: the members' resampling of the captured rays, as rfe's.
+        power: exponent of a ray's unseen angle (as a share of pi).
     """
 
     name = "hybrid"
@@ -99,19 +102,21 @@ class HybridPlanner(Planner):
     min_members = 2
 
     def __init__(self, disagreement: float = 1.0, min_opacity: float = 0.5, depth_resolution: int = 16,
-                 bootstrap: str = "none"):
+                 bootstrap: str = "none", power: float = 1.0):
         if not (is_number(disagreement, finite=True) and disagreement >= 0
                 and is_number(min_opacity, finite=True) and 0 <= min_opacity < 1
-                and is_whole(depth_resolution) and 1 <= depth_resolution <= 256):
-            raise UserError(f"hybrid needs disagreement >= 0, min_opacity in [0, 1) and a whole number "
-                            f"depth_resolution in [1, 256], got {disagreement!r}, {min_opacity!r}, "
-                            f"{depth_resolution!r}")
+                and is_whole(depth_resolution) and 1 <= depth_resolution <= 256
+                and is_number(power, finite=True) and 0 < power <= 8):
+            raise UserError(f"hybrid needs disagreement >= 0, min_opacity in [0, 1), a whole number "
+                            f"depth_resolution in [1, 256] and power in (0, 8], got {disagreement!r}, "
+                            f"{min_opacity!r}, {depth_resolution!r}, {power!r}")
         self.disagreement, self.min_opacity = float(disagreement), float(min_opacity)
         self.depth_resolution, self.bootstrap = int(depth_resolution), check_bootstrap(bootstrap)
+        self.power = float(power)
 
     def options(self):
         return {"disagreement": self.disagreement, "min_opacity": self.min_opacity,
-                "depth_resolution": self.depth_resolution, "bootstrap": self.bootstrap}
+                "depth_resolution": self.depth_resolution, "bootstrap": self.bootstrap, "power": self.power}
 
     def make_field(self, bbox_min, bbox_max, n_members, config, seed):
         return Ensemble(bbox_min, bbox_max, n_members=n_members, config=config, seed=seed, bootstrap=self.bootstrap)
@@ -146,7 +151,7 @@ class HybridPlanner(Planner):
                 hit = surface[i]
                 if hit.any():
                     angle = unseen_angles(points[i, hit], state.candidates[i].position, cams, depths)
-                    scores[i] = float((angle / np.pi * gain[i, hit]).sum()) / r
+                    scores[i] = float(((angle / np.pi) ** self.power * gain[i, hit]).sum()) / r
             first = scores if first is None else first
             pick = greedy_top(scores, allowed, 1)[0]
             picks.append(pick)

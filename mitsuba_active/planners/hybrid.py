@@ -60,25 +60,31 @@ def farthest_around(depth: np.ndarray) -> np.ndarray:
     return np.max([padded[i:i + h, j:j + w] for i in range(3) for j in range(3)], axis=0)
 
 
+def seen_cosines(points: np.ndarray, centres: np.ndarray, camera, depth: np.ndarray) -> np.ndarray:
+    """(N,) cosine of the angle at each of ``points`` (N, 3) between the
+    directions to ``centres`` (N, 3 or 3,) and to ``camera``; -1 where the
+    camera does not see the point. ``depth``: (H*W,) distances along its
+    pixels' rays to the first surface (inf where there is none), at the
+    camera's resolution."""
+    p = np.asarray(points, np.float64)
+    to_c = np.broadcast_to(centres, p.shape) - p
+    to_c = to_c / np.maximum(np.linalg.norm(to_c, axis=1, keepdims=True), 1e-12)
+    pix, inside = project(camera, p)
+    to_j = camera.position[None, :] - p
+    dist = np.linalg.norm(to_j, axis=1)
+    seen = inside & (dist <= depth[pix] * (1.0 + DEPTH_TOLERANCE))
+    cos = np.einsum("ij,ij->i", to_c, to_j) / np.maximum(dist, 1e-12)
+    return np.where(seen, cos, -1.0)
+
+
 def unseen_angles(points: np.ndarray, centre: np.ndarray, cameras: list, depths: list) -> np.ndarray:
     """(N,) angle (radians, in [0, pi]) at each of ``points`` (N, 3) between the
     direction to ``centre`` (3,) and the nearest direction to a camera of
-    ``cameras`` that sees the point; pi where none does.
-
-    ``depths``: per camera, (H*W,) float distances along its pixels' rays to
-    the first surface (inf where there is none), at that camera's resolution.
-    """
-    p = np.asarray(points, np.float64)
-    to_c = centre[None, :] - p
-    to_c /= np.maximum(np.linalg.norm(to_c, axis=1, keepdims=True), 1e-12)
-    best = np.full(len(p), -1.0)  # cosine of the best angle
+    ``cameras`` that sees the point (see :func:`seen_cosines`, ``depths`` one
+    per camera); pi where none does."""
+    best = np.full(len(points), -1.0)
     for cam, depth in zip(cameras, depths):
-        pix, inside = project(cam, p)
-        to_j = cam.position[None, :] - p
-        dist = np.linalg.norm(to_j, axis=1)
-        seen = inside & (dist <= depth[pix] * (1.0 + DEPTH_TOLERANCE))
-        cos = np.einsum("ij,ij->i", to_c, to_j) / np.maximum(dist, 1e-12)
-        best = np.where(seen, np.maximum(best, cos), best)
+        best = np.maximum(best, seen_cosines(points, centre, cam, depth))
     return np.arccos(np.clip(best, -1.0, 1.0))
 
 
@@ -121,14 +127,22 @@ class HybridPlanner(Planner):
     def make_field(self, bbox_min, bbox_max, n_members, config, seed):
         return Ensemble(bbox_min, bbox_max, n_members=n_members, config=config, seed=seed, bootstrap=self.bootstrap)
 
-    def _depth_view(self, ensemble, camera):
-        """``camera`` at the depth maps' resolution and its (H*W,) distances to the first surface (inf: none)."""
-        small = camera.with_resolution(self.depth_resolution, max(1, round(
-            self.depth_resolution * camera.height / camera.width)))
-        o, d = camera_rays(small)
-        pred = ensemble.predict(o, d)
+    def _depth_views(self, ensemble, cameras) -> list:
+        """Each of ``cameras`` at the depth maps' resolution and its (H*W,)
+        distances to the first surface (inf: none), rendered in one call."""
+        smalls = [cam.with_resolution(self.depth_resolution, max(1, round(self.depth_resolution * cam.height
+                                                                           / cam.width))) for cam in cameras]
+        if not smalls:
+            return []
+        rays = [camera_rays(small) for small in smalls]
+        pred = ensemble.predict(np.concatenate([o for o, _ in rays]), np.concatenate([d for _, d in rays]))
         depth = np.where(pred["opacity"] > self.min_opacity, pred["distance_mean"], np.inf)
-        return small, farthest_around(depth.reshape(small.height, small.width)).ravel()
+        out, start = [], 0
+        for small in smalls:
+            n = small.width * small.height
+            out.append((small, farthest_around(depth[start:start + n].reshape(small.height, small.width)).ravel()))
+            start += n
+        return out
 
     def select(self, state: PlanningState, batch: int):
         allowed = unseen(state)
@@ -141,20 +155,23 @@ class HybridPlanner(Planner):
         points = (origins + directions * pred["distance_mean"].reshape(c, r, 1)).astype(np.float64)
         var = pred["rgb_var"].reshape(c, r, 3).sum(axis=2)
         mean_var = float(var[surface].mean()) if surface.any() else 0.0
-        gain = 1.0 + (self.disagreement * var / mean_var if mean_var > 0 else 0.0)
-        views = [self._depth_view(state.ensemble, state.candidates[j]) for j in dict.fromkeys(state.captured)]
+        gain = 1.0 + self.disagreement * var / mean_var if mean_var > 0 else np.ones_like(var)
+        # Each surface point's best cosine over the captured cameras, raised as picks join them.
+        owner, ray = np.nonzero(surface)
+        pts, centres = points[owner, ray], np.stack([state.candidates[i].position for i in range(c)])[owner]
+        worth_gain = gain[owner, ray]
+        best = np.full(len(owner), -1.0)
+        for view in self._depth_views(state.ensemble, [state.candidates[j] for j in dict.fromkeys(state.captured)]):
+            best = np.maximum(best, seen_cosines(pts, centres, *view))
         picks, first = [], None
         for _ in range(batch):
-            cams, depths = [v[0] for v in views], [v[1] for v in views]
-            scores = np.zeros(c)
-            for i in np.flatnonzero(allowed) if first is not None else range(c):
-                hit = surface[i]
-                if hit.any():
-                    angle = unseen_angles(points[i, hit], state.candidates[i].position, cams, depths)
-                    scores[i] = float(((angle / np.pi) ** self.power * gain[i, hit]).sum()) / r
+            worth = (np.arccos(np.clip(best, -1.0, 1.0)) / np.pi) ** self.power * worth_gain
+            scores = np.bincount(owner, weights=worth, minlength=c) / r
             first = scores if first is None else first
             pick = greedy_top(scores, allowed, 1)[0]
             picks.append(pick)
             allowed[pick] = False
-            views.append(self._depth_view(state.ensemble, state.candidates[pick]))
+            if len(picks) < batch:
+                view, = self._depth_views(state.ensemble, [state.candidates[pick]])
+                best = np.maximum(best, seen_cosines(pts, centres, *view))
         return picks, first

@@ -7,13 +7,12 @@ opacity above ``min_opacity``), the hit point ``p`` (at the members' mean
 distance), and the angle at ``p`` between the candidate's centre and the
 nearest captured camera that sees ``p`` (``p`` in its frustum, and no farther
 than the ensemble's distance along that camera's ray to it, plus
-``DEPTH_TOLERANCE``, on a coarse depth map): pi where none sees it. A ray's worth is that angle's
-share of pi, times ``1 + disagreement * v / v_mean``, where ``v`` is the
-members' colour variance along the ray and ``v_mean`` its mean over all
-candidates' surface rays (with ``power``, the angle's share is raised to
-it first: 2 favours the largest gaps). A candidate's score is the mean worth
-of its R rays:
-new surface, or surface seen only from far, counts most where the members
+``DEPTH_TOLERANCE``, on a coarse depth map): pi where none sees it. A ray's
+worth is that angle's share of pi (raised to ``power``: 2 favours the largest
+gaps), times ``1 + disagreement * v / v_mean``, where ``v`` is the members'
+colour variance along the ray and ``v_mean`` its mean over all candidates'
+surface rays. A candidate's score is the mean worth of its R rays: new
+surface, or surface seen only from far, counts most where the members
 disagree about it. Batches are greedy: each pick counts as captured (with
 the ensemble's depths) when the next is scored.
 """

@@ -79,7 +79,8 @@ def test_hybrid_batches_count_their_own_picks_as_captured():
 
 
 def test_hybrid_and_rfe_options_are_checked():
-    for bad in (dict(disagreement=-1), dict(min_opacity=1.0), dict(depth_resolution=0), dict(bootstrap="pixels"), dict(power=0)):
+    for bad in (dict(disagreement=-1), dict(min_opacity=1.0), dict(depth_resolution=0), dict(bootstrap="pixels"),
+                dict(power=0)):
         with pytest.raises(UserError, match="hybrid|bootstrap"):
             make_planner("hybrid", **bad)
     for bad in (dict(min_opacity=-0.1), dict(bootstrap="all")):
@@ -97,8 +98,9 @@ def test_rfe_scores_only_rays_above_min_opacity():
             out["rgb_var"] = np.where(out["opacity"][:, None] > 0, 0.0, np.ones((1, 3))).astype(np.float32)
             return out
 
-    _, all_rays = make_planner("rfe").select(PlanningState(CANDS, [0], Fog(lambda p: np.zeros(len(p))), rays), 1)
-    _, surface = make_planner("rfe", min_opacity=0.5).select(PlanningState(CANDS, [0], Fog(lambda p: np.zeros(len(p))), rays), 1)
+    fog = Fog(lambda p: np.zeros(len(p)))
+    _, all_rays = make_planner("rfe").select(PlanningState(CANDS, [0], fog, rays), 1)
+    _, surface = make_planner("rfe", min_opacity=0.5).select(PlanningState(CANDS, [0], fog, rays), 1)
     assert all_rays.max() > 0 and np.all(surface == 0)
 
 

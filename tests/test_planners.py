@@ -13,7 +13,7 @@ CANDS = fibonacci_sphere(12, [0, 0, 0], 2.0, 40.0, 8, 8)
 
 
 def test_registry_and_unknown_names():
-    assert set(names()) == {"random", "even", "rfe", "fisher", "coverage", "variational"}
+    assert set(names()) == {"random", "even", "rfe", "fisher", "coverage", "variational", "hybrid"}
     with pytest.raises(UserError, match="unknown planner"):
         make_planner("oracle")
     # Names in any case; a mistyped one is answered with the nearest.
@@ -99,7 +99,7 @@ def test_fisher_batches_fold_each_pick_into_the_training_information():
     assert picks[1] == 2  # not the duplicate, whose information is already counted
 
 
-@pytest.mark.parametrize("name", ["even", "coverage", "fisher"])
+@pytest.mark.parametrize("name", ["even", "coverage", "fisher", "hybrid"])
 def test_a_batch_larger_than_the_views_left_names_both_counts(name):
     # fisher is refused before it computes any Fisher information (no ensemble is needed to say so).
     from types import SimpleNamespace
@@ -111,7 +111,7 @@ def test_a_batch_larger_than_the_views_left_names_both_counts(name):
         make_planner(name).select(state, 2)
 
 
-@pytest.mark.parametrize("name", ["rfe", "fisher"])
+@pytest.mark.parametrize("name", ["rfe", "fisher", "hybrid"])
 def test_scoring_planners_say_what_the_state_lacks(name):
     from types import SimpleNamespace
 

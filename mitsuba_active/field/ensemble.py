@@ -45,10 +45,23 @@ MIN_BOX_SIDE = 0.05
 #: per channel (the sigmoid's gradient vanishes at its ends).
 BACKGROUND_CLIP = 0.02
 
+#: How an ensemble's members may resample the training rays (``bootstrap``):
+#: not at all, per ray, or per view (the rays that share an origin).
+BOOTSTRAP_KINDS = ("none", "rays", "views")
+#: Cumulative Poisson(1) probabilities of 0 to 5: a ray's weight in a
+#: member's resample counts how many of them its uniform draw exceeds (at
+#: most 6; 1 in 12000 would draw more).
+POISSON_CDF = (0.36787944, 0.73575888, 0.91969860, 0.98101184, 0.99634015, 0.99940582)
+
 
 def _member_seeds(seed: int, n: int):
     """Independent per-member seed sequences; member k does not depend on n."""
     return [np.random.SeedSequence(int(seed), spawn_key=(k,)) for k in range(n)]
+
+
+def _weighted(out: dict, term):
+    """A member's per-ray loss ``term`` times its bootstrap weights, if it has them."""
+    return term * out["weight"] if "weight" in out else term
 
 
 def _triples(values, what: str, name: str) -> np.ndarray:
@@ -100,13 +113,22 @@ class Ensemble:
         n_members: K.
         config: :class:`FieldConfig` (defaults if None).
         seed: base seed; member k is initialised from ``(seed, k)``.
+        bootstrap: ``"none"``: every member fits every training ray alike.
+            ``"rays"`` or ``"views"``: every member but the first (which
+            fits all rays) fits its own bootstrap resample of them: its loss
+            weighs each ray, or each view (the rays that share an origin, as
+            a camera's do), by a Poisson(1) count (:data:`POISSON_CDF`)
+            hashed from the seed, the member and the ray's index or origin.
+            About a third of the views (or rays) are left out of each such
+            member, so members disagree where few views constrain the
+            field. A ray keeps its weight as views are added after it.
     """
 
     #: ``kind`` of the saved file (see :mod:`.io`).
     KIND = "mitsuba_active.field.Ensemble"
 
     def __init__(self, bbox_min, bbox_max, n_members: int = 4,
-                 config: FieldConfig | None = None, seed: int = 0):
+                 config: FieldConfig | None = None, seed: int = 0, bootstrap: str = "none"):
         require_variant("Ensemble")
         self._variant = mi.variant()  # its Dr.Jit arrays are of this variant's backend
         if config is not None and not isinstance(config, FieldConfig):
@@ -125,6 +147,9 @@ class Ensemble:
         if not is_whole(seed) or not 0 <= seed < 2**63:  # numpy's seeds, and the file's int64
             raise UserError(f"Ensemble needs a whole number seed in [0, 2^63), got {seed!r}")
         self.seed = int(seed)
+        if bootstrap not in BOOTSTRAP_KINDS:
+            raise UserError(f"Ensemble: bootstrap must be one of {', '.join(BOOTSTRAP_KINDS)}, got {bootstrap!r}")
+        self.bootstrap = bootstrap
         self.layout = GridLayout.from_config(self.config)
         pad = self.config.bbox_padding * extent
         box_min, box_max = self.bbox_min - pad, self.bbox_max + pad
@@ -240,8 +265,8 @@ class Ensemble:
         return self._numpy("sky") if self.config.background_resolution > 0 else np.zeros(0, np.float32)
 
     def options(self) -> dict:
-        """Options beyond :class:`FieldConfig` that a saved file keeps (none here)."""
-        return {}
+        """Options beyond :class:`FieldConfig` that a saved file keeps (``bootstrap``, when on)."""
+        return {} if self.bootstrap == "none" else {"bootstrap": self.bootstrap}
 
     @property
     def n_outputs(self) -> int:
@@ -405,6 +430,38 @@ class Ensemble:
         jitter = uniform_from_u32(hash_u32(hash_u32(dr.arange(mi.UInt32, N * S)) ^ key2))
         return idx, jitter
 
+    def _member_weights(self, idx, o):
+        """Per-member loss weights of a batch's rays (``mi.Float`` each, one
+        per member), or None without ``bootstrap``: see the class docstring."""
+        if self.bootstrap == "none":
+            return None
+        if self.bootstrap == "rays":
+            ident = idx
+        else:  # a view's rays share their origin: its bits name the view
+            ident = hash_u32(dr.reinterpret_array(mi.UInt32, o.x))
+            ident = hash_u32(ident ^ dr.reinterpret_array(mi.UInt32, o.y))
+            ident = hash_u32(ident ^ dr.reinterpret_array(mi.UInt32, o.z))
+        weights = [dr.full(mi.Float, 1.0, dr.width(idx))]  # the first member fits every ray
+        for k in range(1, self.n_members):
+            key = dr.opaque(mi.UInt32, (self.seed * 0x27D4EB2F + k * 0x165667B1) & 0xFFFFFFFF)
+            u = uniform_from_u32(hash_u32(hash_u32(ident) ^ key))
+            weights.append(sum(dr.select(u >= p, 1.0, 0.0) for p in POISSON_CDF))
+        return weights
+
+    def ray_weights(self, origins, indices) -> np.ndarray:
+        """(K, N) float32 weights of training rays in each member's loss:
+        ``indices`` (N,) of the rays among those set, ``origins`` (N, 3) of
+        them; all ones without ``bootstrap``."""
+        self._check_variant()
+        o = _triples(origins, "ray_weights", "origins")
+        idx = np.asarray(indices, np.int64).reshape(-1)
+        if idx.shape[0] != o.shape[0] or (idx < 0).any() or (idx >= 2**32).any():
+            raise UserError("ray_weights: one index in [0, 2^32) per origin")
+        w = self._member_weights(mi.UInt32(idx.astype(np.uint32)), mi.Point3f(o.T))
+        if w is None:
+            return np.ones((self.n_members, len(idx)), np.float32)
+        return np.stack([np.array(wk, np.float32).reshape(-1) for wk in w])
+
     def training_loss(self):
         """Trace (do not evaluate) the loss of the next training step.
 
@@ -429,14 +486,17 @@ class Ensemble:
         if cfg.random_background and self._known_background:
             target, outs = self._random_background(idx, target, outs)
         # Sum of the members' mean losses: each member gets the gradient
-        # it would get if trained alone.
+        # it would get if trained alone (on its resample, with ``bootstrap``).
+        weights = self._member_weights(idx, o)
+        if weights is not None:
+            outs = [{**out, "weight": w} for out, w in zip(outs, weights)]
         sq = 0.0
         for out in outs:
-            sq = sq + dr.squared_norm(out["rgb"] - target)
+            sq = sq + _weighted(out, dr.squared_norm(out["rgb"] - target))
         mse = dr.sum(sq) * (1.0 / (N * 3))
         loss = mse + regulariser
         if reg is not None:
-            loss = loss + 1.0 / N * dr.sum(sum(out["regulariser"] for out in outs))
+            loss = loss + 1.0 / N * dr.sum(sum(_weighted(out, out["regulariser"]) for out in outs))
         dw, ew = float(cfg.distance_weight), float(cfg.empty_weight)
         if ew > 0:
             # Rays that meet nothing should see the background colour, not
@@ -444,7 +504,7 @@ class Ensemble:
             empty = dr.gather(mi.Bool, R["empty"], idx)
             esq = 0.0
             for out in outs:
-                esq = esq + dr.select(empty, dr.square(out["opacity"]), 0.0)
+                esq = esq + _weighted(out, dr.select(empty, dr.square(out["opacity"]), 0.0))
             loss = loss + ew / N * dr.sum(esq)
         if dw > 0:
             hit = dr.gather(mi.Bool, R["hit"], idx)
@@ -452,7 +512,7 @@ class Ensemble:
             dt = dr.gather(mi.Float, R["distance"], idx)
             dsq = 0.0
             for out in outs:
-                dsq = dsq + dr.square(dr.select(hit, out["distance"] - dt, 0.0))
+                dsq = dsq + _weighted(out, dr.square(dr.select(hit, out["distance"] - dt, 0.0)))
             loss = loss + dw * inv_diag2 / N * dr.sum(dsq)
         return mse, loss
 

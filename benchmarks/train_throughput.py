@@ -66,6 +66,8 @@ import numpy as np  # noqa: E402
 
 from mitsuba_active.errors import UserError  # noqa: E402
 from mitsuba_active.field import Ensemble, FieldConfig  # noqa: E402
+from mitsuba_active.field.render import lookup_samples  # noqa: E402
+from mitsuba_active.field.samples import sample_along_rays  # noqa: E402
 from mitsuba_active.field.config import FIELD_PRESETS  # noqa: E402
 
 
@@ -178,8 +180,6 @@ def phase_times(ks, rays, cfg, steps, warmup):
 def grid_only_times(ks, rays, cfg, steps, warmup):
     """Median ms of a step that only looks up, back-propagates and updates the
     grid, per K (the K's steps interleaved, as in :func:`time_steps`)."""
-    from mitsuba_active.field.render import lookup_samples, sample_along_rays
-
     ens = ensembles(ks, rays, cfg, 0)  # warmed up below, on the grid-only kernels
     times = {k: [] for k in ks}
     for j in range(warmup + steps):

@@ -13,7 +13,8 @@ from mitsuba_active.datasets import FAR_CONTRACTION, DatasetSource, plain_backdr
 from mitsuba_active.field.config import CAPTURE_SKY_RESOLUTION
 from mitsuba_active.errors import UserError
 from mitsuba_active.field import Ensemble, FieldConfig
-from mitsuba_active.field.render import field_position, render_rays_dr, sample_along_rays
+from mitsuba_active.field.render_dr import render_rays_dr
+from mitsuba_active.field.samples import field_position, sample_along_rays
 from mitsuba_active.field.variational import VariationalField
 from mitsuba_active.metrics import foreground_psnr, psnr
 from mitsuba_active.training import predict_view, train_on

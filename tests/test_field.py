@@ -18,7 +18,9 @@ from mitsuba_active.errors import UserError
 from mitsuba_active.field import Ensemble, FieldConfig
 from mitsuba_active.field.variational import VariationalField
 from mitsuba_active.field.config import FIELD_PRESETS
-from mitsuba_active.field.render import composite, composite_marched, field_at, render_flat
+from mitsuba_active.field.march import composite, composite_marched
+from mitsuba_active.field.render import render_flat
+from mitsuba_active.field.samples import field_at
 
 BOX = ([-0.7] * 3, [0.7] * 3)
 

@@ -7,7 +7,7 @@ import pytest
 from .conftest import tiny_source
 from mitsuba_active.errors import UserError
 from mitsuba_active.field import Ensemble, FieldConfig
-from mitsuba_active.field.render import sample_along_rays
+from mitsuba_active.field.samples import sample_along_rays
 from mitsuba_active.field.room import ROOM_DISTANCE_OPTIONS, ROOM_OPTIONS, cameras_inside
 from mitsuba_active.run import RunConfig, source_field_config
 

@@ -26,13 +26,16 @@ from tqdm import tqdm
 from ..checks import is_whole
 from ..errors import TrainingDiverged, UserError
 from ..variant import require_variant
-from .config import MAX_MEMBERS, MAX_STEPS, FieldConfig
 from .batch import ray_order, stratified_indices
+from .bootstrap import BOOTSTRAP_KINDS, bootstrap_weights
+from .config import MAX_MEMBERS, MAX_STEPS, FieldConfig
+from .fisher import fisher_diagonal
 from .grid import GridLayout, anneal_weights, init_grid
 from .io import load_ensemble, save_ensemble
 from .occupancy import DECAY, cell_opacity
 from .regularisers import ray_regularisers
-from .render import FieldParams, background_colour, hash_u32, render_flat, render_members, uniform_from_u32
+from .render import background_colour, render_flat, render_members
+from .samples import FieldParams, hash_u32, uniform_from_u32
 from .sky import sky_size
 from .view import n_coefficients, view_layout
 
@@ -45,13 +48,6 @@ MIN_BOX_SIDE = 0.05
 #: per channel (the sigmoid's gradient vanishes at its ends).
 BACKGROUND_CLIP = 0.02
 
-#: How an ensemble's members may resample the training rays (``bootstrap``):
-#: not at all, per ray, or per view (the rays that share an origin).
-BOOTSTRAP_KINDS = ("none", "rays", "views")
-#: Cumulative Poisson(1) probabilities of 0 to 5: a ray's weight in a
-#: member's resample counts how many of them its uniform draw exceeds (at
-#: most 6; 1 in 12000 would draw more).
-POISSON_CDF = (0.36787944, 0.73575888, 0.91969860, 0.98101184, 0.99634015, 0.99940582)
 
 
 def _member_seeds(seed: int, n: int):
@@ -117,7 +113,7 @@ class Ensemble:
             ``"rays"`` or ``"views"``: every member but the first (which
             fits all rays) fits its own bootstrap resample of them: its loss
             weighs each ray, or each view (the rays that share an origin, as
-            a camera's do), by a Poisson(1) count (:data:`POISSON_CDF`)
+            a camera's do), by a Poisson(1) count (:mod:`.bootstrap`)
             hashed from the seed, the member and the ray's index or origin.
             About a third of the views (or rays) are left out of each such
             member, so members disagree where few views constrain the
@@ -433,20 +429,7 @@ class Ensemble:
     def _member_weights(self, idx, o):
         """Per-member loss weights of a batch's rays (``mi.Float`` each, one
         per member), or None without ``bootstrap``: see the class docstring."""
-        if self.bootstrap == "none":
-            return None
-        if self.bootstrap == "rays":
-            ident = idx
-        else:  # a view's rays share their origin: its bits name the view
-            ident = hash_u32(dr.reinterpret_array(mi.UInt32, o.x))
-            ident = hash_u32(ident ^ dr.reinterpret_array(mi.UInt32, o.y))
-            ident = hash_u32(ident ^ dr.reinterpret_array(mi.UInt32, o.z))
-        weights = [dr.full(mi.Float, 1.0, dr.width(idx))]  # the first member fits every ray
-        for k in range(1, self.n_members):
-            key = dr.opaque(mi.UInt32, (self.seed * 0x27D4EB2F + k * 0x165667B1) & 0xFFFFFFFF)
-            u = uniform_from_u32(hash_u32(hash_u32(ident) ^ key))
-            weights.append(sum(dr.select(u >= p, 1.0, 0.0) for p in POISSON_CDF))
-        return weights
+        return bootstrap_weights(self.bootstrap, self.seed, self.n_members, idx, o)
 
     def ray_weights(self, origins, indices) -> np.ndarray:
         """(K, N) float32 weights of training rays in each member's loss:
@@ -670,46 +653,11 @@ class Ensemble:
     # ----------------------------------------------------------------- fisher
     def fisher_diag(self, origins, directions, member: int = 0, probes: int = 1,
                     seed: int = 0) -> np.ndarray:
-        """Hutchinson estimate of diag(J^T J) for one member.
-
-        ``J`` is the Jacobian of the rendered colours of all given rays (N
-        rays x 3 channels) with respect to the member's P parameters
-        (ordering as :meth:`member_params`: grid floats, then 3 background
-        logits). For Rademacher ``v`` (N,3), ``(J^T v)**2`` is an unbiased
-        estimate of ``sum_{r,c} (dC_rc/dtheta)**2``; ``probes`` of them are
-        averaged. Gradients of all ray batches are accumulated before
-        squaring (the estimate needs the full ``J^T v``).
-
-        Returns:
-            (P,) float64.
-        """
+        """Hutchinson estimate of diag(J^T J) for one member: (P,) float64, in
+        :meth:`member_params`' order (see :mod:`.fisher`)."""
         self._check_variant()
         self._check_member(member)
-        if not is_whole(probes) or probes < 1:
-            raise UserError(f"fisher_diag: probes must be a whole number >= 1, got {probes!r}")
-        op, dp, n, n_pad, B = self._pad(origins, directions)
-        rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(member),)))
-        grid = mi.Float(dr.detach(self._opt["grid"]))
-        bg = mi.Float(dr.detach(self._opt["background"]))
-        acc = np.zeros(self.n_params, np.float64)
-        for _ in range(int(probes)):
-            v = np.zeros((n_pad, 3), np.float32)  # padding rays do not count
-            v[:n] = rng.choice(np.float32([-1.0, 1.0]), size=(n, 3))
-            dr.enable_grad(grid, bg)
-            params = self.params()
-            params.grid, params.background = grid, bg
-            for s in range(0, n_pad, B):
-                out = render_flat(params, mi.Point3f(op[s:s + B].T),
-                                  mi.Vector3f(dp[s:s + B].T), int(member))
-                vb = mi.Color3f(v[s:s + B].T)
-                dr.backward(dr.sum(dr.dot(out["rgb"], vb)))
-            gg = np.array(dr.grad(grid), np.float64).reshape(-1, self.n_members, 4)[:, member]
-            gg = gg.ravel()
-            gb = np.array(dr.grad(bg), np.float64).reshape(self.n_members, 3)[member]
-            dr.disable_grad(grid, bg)
-            g = np.concatenate([gg, gb])
-            acc += g * g
-        return acc / int(probes)
+        return fisher_diagonal(self, origins, directions, member, probes, seed)
 
     # ----------------------------------------------------------------- save
     def save(self, path):

@@ -6,7 +6,7 @@ the 4 channels (density logit, r, g, b logits) innermost. Interleaving makes
 each corner lookup of all K members one packet gather of K*4 floats from one
 cache line (and one packet scatter-add in the backward pass), which is what
 lets one kernel train/render every member at little more than the cost of
-one (see :mod:`mitsuba_active.field.render`).
+one (see :mod:`mitsuba_active.field.march`).
 
 Coarse levels are dense (vertex ``(x, y, z)`` at ``x + y*(r+1) + z*(r+1)**2``);
 levels with more vertices than ``2**log2_table_size`` use the Instant-NGP

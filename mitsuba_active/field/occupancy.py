@@ -21,6 +21,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .grid import query
+from .samples import contracted_stretch, field_at, hash_u32, uniform_from_u32
 
 #: Factor applied to the stored maximum at every refresh.
 DECAY = 0.95
@@ -42,7 +43,7 @@ def cell_opacity(params, resolution: int, key):
     """Largest first-order opacity over members at one jittered point per cell.
 
     Args:
-        params: :class:`~mitsuba_active.field.render.FieldParams`.
+        params: :class:`~mitsuba_active.field.samples.FieldParams`.
         resolution: G, cells per axis.
         key: ``mi.UInt32`` (opaque) seed of this refresh's jitter.
     Returns:
@@ -50,8 +51,6 @@ def cell_opacity(params, resolution: int, key):
         a contracted field the step is a box sample's (``diag / (n_samples //
         2)``) times the cell's stretch (:func:`.render.contracted_stretch`).
     """
-    from .render import contracted_stretch, field_at, hash_u32, uniform_from_u32
-
     G = int(resolution)
     i = dr.arange(mi.UInt32, G ** 3)
     cell = mi.Vector3f(mi.Float(i % G), mi.Float((i // G) % G), mi.Float(i // (G * G)))

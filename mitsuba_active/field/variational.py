@@ -32,7 +32,8 @@ import numpy as np
 from ..checks import is_number, is_whole
 from ..errors import UserError
 from .ensemble import Ensemble
-from .render import _composited, hash_u32, lookup_samples, sample_along_rays
+from .render import _composited, lookup_samples
+from .samples import hash_u32, sample_along_rays
 
 #: Defaults: the largest standard deviation of a raw feature (in logit
 #: units), the weight of the entropy term, and the renders whose colour

@@ -7,7 +7,7 @@ import numpy as np
 from ..checks import is_number
 from ..errors import UserError
 from ..field import Ensemble
-from ..field.ensemble import BOOTSTRAP_KINDS
+from ..field.bootstrap import BOOTSTRAP_KINDS
 from .base import Planner, PlanningState, greedy_top, register, unseen
 
 #: Floor for the variance inside the logarithm, so that views the ensemble
@@ -16,7 +16,7 @@ LOG_VARIANCE_FLOOR = 1e-10
 
 
 def check_bootstrap(bootstrap) -> str:
-    """The ensemble's resampling (:data:`~mitsuba_active.field.ensemble.BOOTSTRAP_KINDS`), else UserError."""
+    """The ensemble's resampling (:data:`~mitsuba_active.field.bootstrap.BOOTSTRAP_KINDS`), else UserError."""
     if bootstrap not in BOOTSTRAP_KINDS:
         raise UserError(f"unknown bootstrap '{bootstrap}'; use one of {', '.join(BOOTSTRAP_KINDS)}")
     return bootstrap

@@ -6,7 +6,8 @@ hash ``(x*1) ^ (y*2654435761) ^ (z*805459861) mod T`` for the finer ones,
 the same table sizes and offsets), trilinear features summed over levels,
 ``sigma = exp(min(s + density_bias, 15)) / diag``, ``rgb = sigmoid``, the
 optional spherical-harmonic view residual, stratified samples in the padded
-box, alpha compositing over a learnt background, the same losses and Adam
+box, alpha compositing over a learnt background, the same losses (the
+distortion loss included) and Adam
 (Dr.Jit's form: ``m * rsqrt(v + eps^2)`` scaled by ``-lr sqrt(1 - b2^t) /
 (1 - b1^t)``). It trains with ``torch.compile`` on the CPU with as many
 threads as Dr.Jit uses.
@@ -157,8 +158,9 @@ class TorchField:
         u = ((p - box_min) * self.box_scale_t).reshape(-1, 3)
         return t, delta, u, t_far > t_near
 
-    def render(self, params, o, d, jitter=None, clip=False):
-        """Colour (R, 3), distance (R,), opacity (R,) of rays o, d (R, 3)."""
+    def render(self, params, o, d, jitter=None, clip=False, distortion=False):
+        """Colour (R, 3), distance (R,), opacity (R,) of rays o, d (R, 3); with
+        ``distortion`` also each ray's distortion loss (R,), as ours computes it."""
         cfg = self.cfg
         t, delta, u, valid = self.samples(o, d, jitter)
         R, S = t.shape
@@ -182,6 +184,12 @@ class TorchField:
             rgb = rgb + opacity.detach()[:, None] * residual
             if clip:
                 rgb = rgb.clamp(0.0, 1.0)
+        if distortion:  # sum_ij w_i w_j |t_i - t_j| / length + sum_i w_i^2 / (3 S), in the box's length
+            before_w = torch.cumsum(w, 1) - w
+            before_wt = torch.cumsum(w * t, 1) - w * t
+            inv_length = torch.where(delta > 0, 1.0 / (delta * S), 0.0)
+            share = w * (2.0 * inv_length[:, None] * (t * before_w - before_wt) + w * (1.0 / (3 * S)))
+            return rgb, distance, opacity, share.sum(1)
         return rgb, distance, opacity
 
     def loss(self, params, rays, idx, jitter):
@@ -189,9 +197,12 @@ class TorchField:
         tensors: o, d, rgb, distance, hit, empty) with sample ``jitter`` (N, S)."""
         cfg = self.cfg
         N = idx.shape[0]
-        rgb, distance, opacity = self.render(params, rays["o"][idx], rays["d"][idx], jitter)
+        out = self.render(params, rays["o"][idx], rays["d"][idx], jitter, distortion=cfg.distortion_weight > 0)
+        rgb, distance, opacity = out[:3]
         mse = ((rgb - rays["rgb"][idx]) ** 2).sum() * (1.0 / (N * 3))
         loss = mse
+        if cfg.distortion_weight > 0:
+            loss = loss + cfg.distortion_weight / N * out[3].sum()
         if cfg.empty_weight > 0:
             loss = loss + cfg.empty_weight / N * torch.where(rays["empty"][idx], opacity ** 2, 0.0).sum()
         if cfg.distance_weight > 0:
@@ -374,6 +385,10 @@ def main(argv=None):
         ap.error(str(exc))
     if cfg.occupancy_resolution > 0:
         ap.error("the peer evaluates every sample: leave occupancy_resolution at 0")
+    if cfg.occlusion_weight > 0 or cfg.random_background or cfg.contraction or cfg.background_resolution \
+            or cfg.anneal_steps or cfg.coherent_batches:
+        ap.error("the peer has no occlusion penalty, random background, contraction, directional background, "
+                 "annealing or coherent batches: leave them off")
     threads = dr.thread_count()
     torch.set_num_threads(threads)
     rays = synthetic_rays()

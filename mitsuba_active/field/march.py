@@ -303,7 +303,7 @@ def composite_marched(raw, t, delta, valid, S: int, density_bias: float, inv_dia
     """Alpha-composite blocks of S samples from their raw features, one ray
     per lane, without per-sample intermediates.
 
-    The same outputs as :func:`.render.field_at` followed by :func:`.render.composite`
+    The same outputs as :func:`.samples.field_at` followed by :func:`composite`
     (transmittance as a running product instead of the exponential of a
     prefix sum: equal to rounding), as a ``drjit.CustomOp``: the forward pass
     marches each ray through its samples in a loop, keeping transmittance and
@@ -327,7 +327,7 @@ def composite_marched(raw, t, delta, valid, S: int, density_bias: float, inv_dia
             occlusion samples), see :mod:`.regularisers`, or None.
     Returns:
         (rgb ``mi.Color3f``, distance sum ``sum w t``, opacity ``sum w``),
-        each of length R, as :func:`.render.composite` returns them, and with
+        each of length R, as :func:`composite` returns them, and with
         ``reg`` the regularisers' weighted sum per ray; for a list, a list
         of such tuples, one per member.
     """

@@ -49,7 +49,7 @@ def cell_opacity(params, resolution: int, key):
     Returns:
         ``mi.Float`` of G^3 values, ``max_k sigma_k * diag / n_samples``; in
         a contracted field the step is a box sample's (``diag / (n_samples //
-        2)``) times the cell's stretch (:func:`.render.contracted_stretch`).
+        2)``) times the cell's stretch (:func:`.samples.contracted_stretch`).
     """
     G = int(resolution)
     i = dr.arange(mi.UInt32, G ** 3)

@@ -4,7 +4,7 @@ Two kinds of data:
 
 * a mesh (``--mesh``, default ``spot.obj`` at 64x64): 50 training views and
   20 held-out views from the sphere rig of
-  :func:`mitsuba_active.cameras.scene_rigs` (held-out views in the
+  :func:`mitsuba_active.rigs.scene_rigs` (held-out views in the
   candidates' gaps), ground truth from :class:`mitsuba_active.groundtruth.GroundTruth`;
 * a ``transforms.json`` dataset (``--dataset``, e.g. nerf-synthetic Mic at
   ``--downscale 4``, 200x200): ``--train-views`` of its training frames,
@@ -50,14 +50,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import mitsuba_active  # noqa: E402,F401
 import numpy as np  # noqa: E402
 
-from mitsuba_active.cameras import scene_rigs  # noqa: E402
 from mitsuba_active.datasets import DatasetSource  # noqa: E402
 from mitsuba_active.errors import UserError  # noqa: E402
 from mitsuba_active.field import Ensemble, FieldConfig  # noqa: E402
 from mitsuba_active.field.config import FIELD_PRESETS  # noqa: E402
 from mitsuba_active.groundtruth import GroundTruth  # noqa: E402
-from mitsuba_active.training import train_on, view_rays  # noqa: E402
+from mitsuba_active.rigs import scene_rigs  # noqa: E402
 from mitsuba_active.scene import load_scene, scene_from_mesh  # noqa: E402
+from mitsuba_active.training import train_on, view_rays  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 MESH = str(ROOT.parent / "shared/data/meshes/spot.obj")

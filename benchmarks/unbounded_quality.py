@@ -38,11 +38,12 @@ import imageio.v3 as iio  # noqa: E402
 import mitsuba as mi  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mitsuba_active.cameras import camera_rays, rings  # noqa: E402
+from mitsuba_active.cameras import camera_rays  # noqa: E402
 from mitsuba_active.datasets import DatasetSource  # noqa: E402
 from mitsuba_active.field import Ensemble, FieldConfig  # noqa: E402
 from mitsuba_active.imageio_utils import linear_to_srgb  # noqa: E402
 from mitsuba_active.metrics import foreground_psnr, psnr  # noqa: E402
+from mitsuba_active.rigs import rings  # noqa: E402
 from mitsuba_active.training import predict_view, train_on  # noqa: E402
 from mitsuba_active.transforms import mitsuba_to_opengl  # noqa: E402
 

@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import imageio.v3 as iio  # noqa: E402
 import numpy as np  # noqa: E402
 
-from mitsuba_active.cameras import fibonacci_sphere  # noqa: E402
+from mitsuba_active.rigs import fibonacci_sphere  # noqa: E402
 from tests.browser import Browser  # noqa: E402
 from tests.test_report import SCENE_TREE, VIEWER_KINDS  # noqa: E402
 

@@ -24,7 +24,6 @@ with interruptible_imports():  # click, numpy and the libraries below load here,
     from tqdm import tqdm
 
     from .bench import PROFILES, parse_overrides, run_suite
-    from .cameras import RIG_KINDS, auto_rig
     from .checks import nearest, setting_value
     from .console import mitsuba_log_as_warnings, one_line, show_warning
     from .embodiments import EMBODIMENTS
@@ -37,6 +36,7 @@ with interruptible_imports():  # click, numpy and the libraries below load here,
     from .planners.base import registered_name
     from .renders import render_views
     from .report import _plt
+    from .rigs import RIG_KINDS, auto_rig
     from .run import INTERIOR_DISTANCE_WEIGHT, Run, RunConfig, default_out_dir, undone_unless_resumable
     from .scene import (DEFAULT_COLOR, LOOKS, MESH_SUFFIXES, UP_AXES, SceneOptions, authoring_notes,
                         content_hash, scene_from_mesh)

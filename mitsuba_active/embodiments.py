@@ -26,9 +26,9 @@ import mitsuba as mi
 import numpy as np
 from scipy.sparse.csgraph import dijkstra
 
-from .cameras import fibonacci_directions
 from .checks import unknown_choice
 from .errors import UserError
+from .rigs import fibonacci_directions
 from .scene.probes import first_hits
 
 #: A drone's safety margin, as a share of the scene's bounding radius.

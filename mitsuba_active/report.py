@@ -7,8 +7,8 @@ from pathlib import Path
 import imageio.v3 as iio
 import numpy as np
 
-from .cameras import up_frame
 from .imageio_utils import atomic_write
+from .rigs import up_frame
 
 
 def _plt():

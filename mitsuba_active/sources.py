@@ -10,9 +10,10 @@ from typing import Protocol
 
 import numpy as np
 
-from .cameras import Camera, check_disjoint, scene_rigs
+from .cameras import Camera
 from .field.room import room_options
 from .groundtruth import GroundTruth, View
+from .rigs import check_disjoint, scene_rigs
 from .scene import load_scene, scene_from_mitsuba
 
 
@@ -39,7 +40,7 @@ class SceneSource:
 
     Args:
         scene: a loaded :class:`~mitsuba_active.scene.Scene`.
-        candidates, heldout: camera lists (see :func:`~mitsuba_active.cameras.scene_rigs`).
+        candidates, heldout: camera lists (see :func:`~mitsuba_active.rigs.scene_rigs`).
         spp: samples per pixel of the ground-truth renders.
         cache_dir: EXR cache folder (see :class:`~mitsuba_active.groundtruth.GroundTruth`);
             a scene built in Python has no files to key a cache by, and is never cached.
@@ -58,7 +59,7 @@ class SceneSource:
     @classmethod
     def from_xml(cls, xml_path, rig="auto", n_candidates=100, n_heldout=20, resolution=64, fov=None,
                  spp=64, cache_dir=None):
-        """Load a scene XML and make its rigs (:func:`~mitsuba_active.cameras.scene_rigs`).
+        """Load a scene XML and make its rigs (:func:`~mitsuba_active.rigs.scene_rigs`).
 
         ``resolution`` is the image width in pixels; the height equals it, or
         under ``rig="xml"`` follows the aspect ratio of the scene's own films.
@@ -79,7 +80,7 @@ class SceneSource:
     def from_scene(cls, scene, rig="auto", n_candidates=100, n_heldout=20, resolution=64, fov=None, spp=64,
                    cache_dir=None):
         """A loaded :class:`~mitsuba_active.scene.Scene` with rigs made by
-        :func:`~mitsuba_active.cameras.scene_rigs`."""
+        :func:`~mitsuba_active.rigs.scene_rigs`."""
         cands, held = scene_rigs(scene, rig, n_candidates, n_heldout, resolution, None, fov)
         return cls(scene, cands, held, spp=spp, cache_dir=cache_dir)
 

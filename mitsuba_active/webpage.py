@@ -17,11 +17,12 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .cameras import Camera, snapped_up
+from .cameras import Camera
 from .imageio_utils import atomic_write
 from .metrics import DECIMALS, fixed
 from .planners.base import planner_label
 from .report import METRIC_LABELS, up_vertical
+from .rigs import snapped_up
 
 #: Name of a run's page in its folder, and of a suite's in its report folder.
 REPORT_FILE = "report.html"

@@ -568,7 +568,7 @@ def test_a_scene_too_large_for_single_precision_is_refused(tmp_path, out):
 
 
 def test_cameras_of_a_large_scene_see_all_of_it(tmp_path, shared_data):
-    from mitsuba_active.cameras import scene_rigs
+    from mitsuba_active.rigs import scene_rigs
     from mitsuba_active.scene import load_scene
 
     scene = load_scene(_rectangle_xml(tmp_path / "big.xml", "1e6"))

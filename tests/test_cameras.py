@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from mitsuba_active.cameras import (MITSUBA_TO_OPENGL, Camera, camera_rays, check_disjoint, fibonacci_sphere,
-                                    hemisphere, interior, look_at, rings, scene_rigs)
+from mitsuba_active.cameras import MITSUBA_TO_OPENGL, Camera, camera_rays, look_at
 from mitsuba_active.errors import UserError
+from mitsuba_active.rigs import check_disjoint, fibonacci_sphere, hemisphere, interior, rings, scene_rigs
 from mitsuba_active.scene import load_scene
 
 

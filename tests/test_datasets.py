@@ -11,11 +11,12 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from mitsuba_active.cameras import camera_rays, fibonacci_sphere, look_at
+from mitsuba_active.cameras import camera_rays, look_at
 from mitsuba_active.datasets import (DatasetSource, estimate_bounds, mitsuba_to_opengl, open_source,
                                      opengl_to_mitsuba)
 from mitsuba_active.env import ActiveViewEnv, SceneSource
 from mitsuba_active.errors import UserError
+from mitsuba_active.rigs import fibonacci_sphere
 
 
 @pytest.fixture(scope="module")

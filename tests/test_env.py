@@ -138,7 +138,7 @@ def test_xml_rig_refuses_sensors_of_different_shapes(tmp_path):
 
 
 def test_wide_images_keep_the_whole_object_in_view(sphere_xml):
-    from mitsuba_active.cameras import scene_rigs
+    from mitsuba_active.rigs import scene_rigs
     from mitsuba_active.scene import load_scene
 
     scene = load_scene(sphere_xml)

@@ -52,7 +52,7 @@ def test_the_example_planner_weighs_variance_by_novelty():
 
     import numpy as np
 
-    from mitsuba_active.cameras import fibonacci_sphere
+    from mitsuba_active.rigs import fibonacci_sphere
     from mitsuba_active.errors import UserError
     from mitsuba_active.planners import PlanningState, make_planner
 

@@ -825,7 +825,7 @@ def glossy_truth(o, d, radius=0.5):
 
 
 def test_view_dependence_fits_a_glossy_sphere_better_than_a_diffuse_field():
-    from mitsuba_active.cameras import fibonacci_directions
+    from mitsuba_active.rigs import fibonacci_directions
 
     cams = 2.2 * fibonacci_directions(24)
     o, d = zip(*[camera_rays(c, width=16, height=16) for c in cams])
@@ -914,7 +914,7 @@ def glossy_ball_views(directions, width=16, spp=16):
 def test_the_fast_preset_with_a_view_dependent_colour_fits_a_glossy_ball_better():
     """The fast preset's field with view_degree=1, against the same without, on held-out views of a
     Mitsuba-rendered glossy ball: the reflection changes with the view, which a diffuse field blurs."""
-    from mitsuba_active.cameras import fibonacci_directions
+    from mitsuba_active.rigs import fibonacci_directions
 
     train = glossy_ball_views(fibonacci_directions(24))
     held_o, held_d, held_rgb, _, _ = glossy_ball_views(fibonacci_directions(4, 0.5))

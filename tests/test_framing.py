@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from mitsuba_active.cameras import FRAMING_MARGIN, framing_radius, scene_rigs
+from mitsuba_active.rigs import FRAMING_MARGIN, framing_radius, scene_rigs
 from mitsuba_active.scene import load_scene
 
 

@@ -5,9 +5,9 @@ import warnings
 import numpy as np
 import pytest
 
-from mitsuba_active.cameras import fibonacci_sphere
 from mitsuba_active.groundtruth import GroundTruth, View
 from mitsuba_active.imageio_utils import linear_to_srgb, read_exr, write_exr
+from mitsuba_active.rigs import fibonacci_sphere
 from mitsuba_active.scene import load_scene
 
 

@@ -6,9 +6,9 @@ import mitsuba_active  # noqa: F401  (variant first)
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_active.cameras import fibonacci_directions
 from mitsuba_active.field import Ensemble, FieldConfig
 from mitsuba_active.field.render import render_flat
+from mitsuba_active.rigs import fibonacci_directions
 from tests.test_field import BOX, camera_rays, psnr, tiny_config, views
 
 FOUR_SIDES = [[0.0, 0.3, 2.2], [2.2, 0.3, 0.0], [0.0, 2.2, 0.3], [-2.2, 0.3, 0.0]]

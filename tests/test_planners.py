@@ -3,11 +3,11 @@ import sys
 import numpy as np
 import pytest
 
-from mitsuba_active.cameras import fibonacci_sphere
 from mitsuba_active.errors import UserError
 from mitsuba_active.planners import PlanningState, make_planner, names
 from mitsuba_active.planners.fisher import greedy_fisher
 from mitsuba_active.planners.rfe import rfe_scores
+from mitsuba_active.rigs import fibonacci_sphere
 
 CANDS = fibonacci_sphere(12, [0, 0, 0], 2.0, 40.0, 8, 8)
 

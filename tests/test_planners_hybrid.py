@@ -3,10 +3,11 @@
 import numpy as np
 import pytest
 
-from mitsuba_active.cameras import camera_rays, fibonacci_sphere
+from mitsuba_active.cameras import camera_rays
 from mitsuba_active.errors import UserError
 from mitsuba_active.planners import PlanningState, make_planner
 from mitsuba_active.planners.hybrid import project, unseen_angles
+from mitsuba_active.rigs import fibonacci_sphere
 from mitsuba_active.run import sparse_candidate_rays
 
 CANDS = fibonacci_sphere(12, [0, 0, 0], 3.0, 40.0, 8, 8)

@@ -6,11 +6,12 @@ import pytest
 import mitsuba_active  # noqa: F401  (variant first)
 import mitsuba as mi
 
-from mitsuba_active.cameras import Camera, camera_rays, fibonacci_sphere, look_at
+from mitsuba_active.cameras import Camera, camera_rays, look_at
 from mitsuba_active.field import Ensemble, FieldConfig
 from mitsuba_active.imageio_utils import srgb_to_linear
 from mitsuba_active.plugins import register
 from mitsuba_active.plugins.radiance_field import AOV_NAMES, NAME
+from mitsuba_active.rigs import fibonacci_sphere
 
 W, H = 16, 12
 

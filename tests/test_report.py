@@ -4,8 +4,8 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from mitsuba_active.cameras import fibonacci_sphere, snapped_up
 from mitsuba_active.report import plot_views, up_vertical
+from mitsuba_active.rigs import fibonacci_sphere, snapped_up
 from tests.conftest import tiny_source
 
 

@@ -357,9 +357,9 @@ def test_export_keeps_each_cameras_field_of_view(tmp_path):
 
 def test_rfe_prefers_the_unseen_side(sphere_xml, tmp_path):
     """Train on views of one side of a ball; the far side must score higher."""
-    from mitsuba_active.cameras import fibonacci_sphere
     from mitsuba_active.env import SceneSource
     from mitsuba_active.planners import PlanningState, make_planner
+    from mitsuba_active.rigs import fibonacci_sphere
     from mitsuba_active.run import make_ensemble, sparse_candidate_rays, train_on
     from mitsuba_active.scene import load_scene
 

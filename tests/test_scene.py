@@ -196,7 +196,7 @@ def test_lights_floor_and_plain_colour(tmp_path, shared_data):
     assert 1.5 < scene.bbox_max[0] - scene.bbox_min[0] < 2.0
     assert len(scene.mi_scene.emitters()) == 4
     # The automatic rig stays above the floor: from below, a view shows its underside only.
-    from mitsuba_active.cameras import scene_rigs
+    from mitsuba_active.rigs import scene_rigs
 
     assert scene.floor and not load_scene(shared_data / "mitsuba" / "simple" / "scene.xml").floor
     floor_height = scene.bbox_min @ scene.up

@@ -193,8 +193,8 @@ def test_bad_travel_settings_are_refused(spot_xml, tmp_path):
 
 
 def test_a_start_pose_inside_the_geometry_is_refused(sphere_xml, tmp_path):
-    from mitsuba_active.cameras import fibonacci_sphere
     from mitsuba_active.env import SceneSource
+    from mitsuba_active.rigs import fibonacci_sphere
     from mitsuba_active.scene import load_scene
 
     scene = load_scene(sphere_xml)

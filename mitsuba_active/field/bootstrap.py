@@ -44,3 +44,8 @@ def bootstrap_weights(bootstrap: str, seed: int, n_members: int, idx, o):
         u = uniform_from_u32(hash_u32(hash_u32(ident) ^ key))
         weights.append(sum(dr.select(u >= p, 1.0, 0.0) for p in POISSON_CDF))
     return weights
+
+
+def weighted(out: dict, term):
+    """A member's per-ray loss ``term`` times its bootstrap weights, if it has them."""
+    return term * out["weight"] if "weight" in out else term

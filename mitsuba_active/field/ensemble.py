@@ -8,9 +8,9 @@ corner, composites each member, and minimises the *sum* of the members' mean
 losses (so each member's gradient equals what it would get if trained
 alone); a single Adam update then advances every member.
 
-Randomness (ray batches, sample jitter) comes from integer hashes of the
-sample index and an opaque per-step key, so it is deterministic under the
-seed and the compiled kernels are reused from step to step.
+Randomness (ray batches, sample jitter) comes from integer hashes of the sample
+index and an opaque per-step key: deterministic under the seed, and the compiled
+kernels are reused from step to step.
 """
 
 from __future__ import annotations
@@ -27,14 +27,15 @@ from ..checks import is_whole
 from ..errors import TrainingDiverged, UserError
 from ..variant import require_variant
 from .batch import ray_order, stratified_indices
-from .bootstrap import BOOTSTRAP_KINDS, bootstrap_weights
+from .bootstrap import BOOTSTRAP_KINDS, bootstrap_weights, weighted
 from .config import MAX_MEMBERS, MAX_STEPS, FieldConfig
 from .fisher import fisher_diagonal
 from .grid import GridLayout, anneal_weights, init_grid
+from .inputs import checked_rays, point, triples
 from .io import load_ensemble, save_ensemble
 from .occupancy import DECAY, cell_opacity
-from .regularisers import ray_regularisers
-from .render import background_colour, render_flat, render_members
+from .regularisers import random_background, ray_regularisers
+from .render import render_members
 from .samples import FieldParams, hash_u32, uniform_from_u32
 from .sky import sky_size
 from .view import n_coefficients, view_layout
@@ -49,53 +50,9 @@ MIN_BOX_SIDE = 0.05
 BACKGROUND_CLIP = 0.02
 
 
-
 def _member_seeds(seed: int, n: int):
     """Independent per-member seed sequences; member k does not depend on n."""
     return [np.random.SeedSequence(int(seed), spawn_key=(k,)) for k in range(n)]
-
-
-def _weighted(out: dict, term):
-    """A member's per-ray loss ``term`` times its bootstrap weights, if it has them."""
-    return term * out["weight"] if "weight" in out else term
-
-
-def _triples(values, what: str, name: str) -> np.ndarray:
-    """(N,3) float32 from an array whose last axis holds 3 values ((N,3), (H,W,3)...)."""
-    a = np.asarray(values, np.float32)
-    if a.ndim == 0 or a.shape[-1] != 3:
-        raise UserError(f"{what}: {name} must be an array of 3-vectors, shape (N, 3), not {a.shape}")
-    return a.reshape(-1, 3)
-
-
-def _point(values, what: str, name: str) -> np.ndarray:
-    """(3,) float64 from a 3-vector, else UserError naming ``what`` and ``name``."""
-    try:
-        p = np.asarray(values, np.float64)
-    except (TypeError, ValueError):
-        p = None
-    if p is None or p.size != 3:
-        raise UserError(f"{what}: {name} must be a point (x, y, z), got "
-                        f"{'shape ' + str(p.shape) if p is not None else repr(values)}")
-    return p.reshape(3)
-
-
-def _rays(origins, directions, what: str) -> tuple[np.ndarray, np.ndarray]:
-    """(N,3) float32 origins and directions, checked: finite, unit directions, as many of each.
-
-    Rays of another kind would not fail, only give wrong fields: a direction
-    of length 2 halves every distance, a NaN spreads through training.
-    """
-    o, d = _triples(origins, what, "origins"), _triples(directions, what, "directions")
-    if o.shape[0] != d.shape[0]:
-        raise UserError(f"{what}: {o.shape[0]} origins but {d.shape[0]} directions")
-    if not (np.isfinite(o).all() and np.isfinite(d).all()):
-        raise UserError(f"{what}: origins and directions must be finite numbers")
-    norms = np.linalg.norm(d, axis=1)
-    if norms.size and np.abs(norms - 1.0).max() > 1e-3:
-        raise UserError(f"{what}: directions must be unit vectors (lengths from {norms.min():.4g} "
-                        f"to {norms.max():.4g})")
-    return o, d
 
 
 class Ensemble:
@@ -109,15 +66,9 @@ class Ensemble:
         n_members: K.
         config: :class:`FieldConfig` (defaults if None).
         seed: base seed; member k is initialised from ``(seed, k)``.
-        bootstrap: ``"none"``: every member fits every training ray alike.
-            ``"rays"`` or ``"views"``: every member but the first (which
-            fits all rays) fits its own bootstrap resample of them: its loss
-            weighs each ray, or each view (the rays that share an origin, as
-            a camera's do), by a Poisson(1) count (:mod:`.bootstrap`)
-            hashed from the seed, the member and the ray's index or origin.
-            About a third of the views (or rays) are left out of each such
-            member, so members disagree where few views constrain the
-            field. A ray keeps its weight as views are added after it.
+        bootstrap: ``"none"``: every member fits every training ray alike;
+            ``"rays"`` or ``"views"``: every member but the first fits its
+            own resample of them (see :mod:`.bootstrap`).
     """
 
     #: ``kind`` of the saved file (see :mod:`.io`).
@@ -131,7 +82,7 @@ class Ensemble:
             raise UserError(f"Ensemble: config must be a FieldConfig (e.g. FieldConfig(n_levels=2)), "
                             f"got {type(config).__name__}")
         self.config = config if config is not None else FieldConfig()
-        self.bbox_min, self.bbox_max = (_point(p, "Ensemble", name) for p, name in ((bbox_min, "bbox_min"),
+        self.bbox_min, self.bbox_max = (point(p, "Ensemble", name) for p, name in ((bbox_min, "bbox_min"),
                                                                                       (bbox_max, "bbox_max")))
         extent = self.bbox_max - self.bbox_min
         if not (np.all(np.isfinite(extent)) and np.all(extent >= 0) and extent.max() > 0):
@@ -316,8 +267,8 @@ class Ensemble:
                 an untrained ensemble's background starts there.
         """
         self._check_variant()
-        o, d = _rays(origins, directions, "set_rays")
-        c = _triples(rgb, "set_rays", "rgb")
+        o, d = checked_rays(origins, directions, "set_rays")
+        c = triples(rgb, "set_rays", "rgb")
         m = o.shape[0]
         if distance is None and self.config.distance_weight > 0:
             raise UserError("set_rays: distance is None, but the distance loss (config.distance_weight "
@@ -426,23 +377,17 @@ class Ensemble:
         jitter = uniform_from_u32(hash_u32(hash_u32(dr.arange(mi.UInt32, N * S)) ^ key2))
         return idx, jitter
 
-    def _member_weights(self, idx, o):
-        """Per-member loss weights of a batch's rays (``mi.Float`` each, one
-        per member), or None without ``bootstrap``: see the class docstring."""
-        return bootstrap_weights(self.bootstrap, self.seed, self.n_members, idx, o)
-
     def ray_weights(self, origins, indices) -> np.ndarray:
         """(K, N) float32 weights of training rays in each member's loss:
         ``indices`` (N,) of the rays among those set, ``origins`` (N, 3) of
         them; all ones without ``bootstrap``."""
         self._check_variant()
-        o = _triples(origins, "ray_weights", "origins")
+        o = triples(origins, "ray_weights", "origins")
         idx = np.asarray(indices, np.int64).reshape(-1)
         if idx.shape[0] != o.shape[0] or (idx < 0).any() or (idx >= 2**32).any():
             raise UserError("ray_weights: one index in [0, 2^32) per origin")
-        w = self._member_weights(mi.UInt32(idx.astype(np.uint32)), mi.Point3f(o.T))
-        if w is None:
-            return np.ones((self.n_members, len(idx)), np.float32)
+        w = bootstrap_weights(self.bootstrap, self.seed, self.n_members, mi.UInt32(idx.astype(np.uint32)),
+                              mi.Point3f(o.T)) or [np.ones(len(idx), np.float32)] * self.n_members
         return np.stack([np.array(wk, np.float32).reshape(-1) for wk in w])
 
     def training_loss(self):
@@ -467,19 +412,19 @@ class Ensemble:
         reg = ray_regularisers(cfg)
         outs, regulariser = self._training_outputs(o, d, jitter, reg)
         if cfg.random_background and self._known_background:
-            target, outs = self._random_background(idx, target, outs)
+            target, outs = random_background(self.params(), self._rays, idx, target, outs, self.seed, self._step)
         # Sum of the members' mean losses: each member gets the gradient
         # it would get if trained alone (on its resample, with ``bootstrap``).
-        weights = self._member_weights(idx, o)
+        weights = bootstrap_weights(self.bootstrap, self.seed, self.n_members, idx, o)
         if weights is not None:
             outs = [{**out, "weight": w} for out, w in zip(outs, weights)]
         sq = 0.0
         for out in outs:
-            sq = sq + _weighted(out, dr.squared_norm(out["rgb"] - target))
+            sq = sq + weighted(out, dr.squared_norm(out["rgb"] - target))
         mse = dr.sum(sq) * (1.0 / (N * 3))
         loss = mse + regulariser
         if reg is not None:
-            loss = loss + 1.0 / N * dr.sum(sum(_weighted(out, out["regulariser"]) for out in outs))
+            loss = loss + 1.0 / N * dr.sum(sum(weighted(out, out["regulariser"]) for out in outs))
         dw, ew = float(cfg.distance_weight), float(cfg.empty_weight)
         if ew > 0:
             # Rays that meet nothing should see the background colour, not
@@ -487,7 +432,7 @@ class Ensemble:
             empty = dr.gather(mi.Bool, R["empty"], idx)
             esq = 0.0
             for out in outs:
-                esq = esq + _weighted(out, dr.select(empty, dr.square(out["opacity"]), 0.0))
+                esq = esq + weighted(out, dr.select(empty, dr.square(out["opacity"]), 0.0))
             loss = loss + ew / N * dr.sum(esq)
         if dw > 0:
             hit = dr.gather(mi.Bool, R["hit"], idx)
@@ -495,7 +440,7 @@ class Ensemble:
             dt = dr.gather(mi.Float, R["distance"], idx)
             dsq = 0.0
             for out in outs:
-                dsq = dsq + _weighted(out, dr.square(dr.select(hit, out["distance"] - dt, 0.0)))
+                dsq = dsq + weighted(out, dr.square(dr.select(hit, out["distance"] - dt, 0.0)))
             loss = loss + dw * inv_diag2 / N * dr.sum(dsq)
         return mse, loss
 
@@ -504,25 +449,6 @@ class Ensemble:
         :func:`.regularisers.ray_regularisers`, each has its ``regulariser``)
         and a loss term added to theirs (none here)."""
         return render_members(self.params(), o, d, jitter, reg=reg), 0.0
-
-    def _random_background(self, idx, target, outs):
-        """The batch's targets and renders with a random colour per ray as the
-        background of its rays known empty (``FieldConfig.random_background``).
-
-        Each render is ``C + (1 - opacity) bg``; adding ``(1 - opacity)
-        (random - bg)`` swaps the background without another render, and the
-        learnt background gets no gradient from those rays."""
-        empty = dr.gather(mi.Bool, self._rays["empty"], idx)
-        key = dr.opaque(mi.UInt32, (self.seed * 0x2C1B3C6D + self._step * 0x297A2D39 + 7) & 0xFFFFFFFF)
-        i = dr.arange(mi.UInt32, dr.width(idx)) * 3
-        colour = mi.Color3f(*[uniform_from_u32(hash_u32(hash_u32(i + c) ^ key)) for c in range(3)])
-        params, d = self.params(), dr.gather(mi.Vector3f, self._rays["d"], idx)
-        swapped = []
-        for k, out in enumerate(outs):
-            bg = background_colour(params, d, k, dr.width(idx))
-            rgb = out["rgb"] + dr.select(empty, (1.0 - out["opacity"]) * (colour - bg), 0.0)
-            swapped.append({**out, "rgb": rgb})
-        return dr.select(empty, colour, target), swapped
 
     def optimizer_step(self):
         """Apply one Adam update from the accumulated gradients (and refresh
@@ -591,7 +517,7 @@ class Ensemble:
     def _pad(self, origins, directions):
         """Pad (N,3) rays to a whole number (>= 1) of batches (see
         :meth:`_render_batch`); returns (o, d, N, N_pad, B)."""
-        o, d = _rays(origins, directions, "rendering")
+        o, d = checked_rays(origins, directions, "rendering")
         n = o.shape[0]
         B = self._render_batch(n)
         n_pad = max(B, -(-n // B) * B)

@@ -24,6 +24,9 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .samples import hash_u32, uniform_from_u32
+from .sky import background_colour
+
 
 
 def ray_regularisers(config) -> tuple | None:
@@ -62,3 +65,26 @@ def blocked_regulariser(w, tau, t, delta, S: int, reg: tuple):
     per = dw * w * (2.0 * (m * before_w - before_x) + w * (1.0 / (3 * S)))
     per = per + ow * dr.select(k < M, tau, 0.0)
     return dr.block_sum(per, S)
+
+
+def random_background(params, rays: dict, idx, target, outs: list, seed: int, step: int):
+    """A training batch's targets and renders with a random colour per ray as the
+    background of its rays known empty (``FieldConfig.random_background``).
+
+    ``params``: the field's :class:`~.samples.FieldParams`; ``rays``: its training
+    rays (``mi`` arrays ``d``, ``empty``); ``idx``: the batch's ray indices;
+    ``target``: their colours; ``outs``: the members' renders. Each render is
+    ``C + (1 - opacity) bg``; adding ``(1 - opacity) (random - bg)`` swaps the
+    background without another render, and the learnt background gets no
+    gradient from those rays."""
+    empty = dr.gather(mi.Bool, rays["empty"], idx)
+    key = dr.opaque(mi.UInt32, (seed * 0x2C1B3C6D + step * 0x297A2D39 + 7) & 0xFFFFFFFF)
+    i = dr.arange(mi.UInt32, dr.width(idx)) * 3
+    colour = mi.Color3f(*[uniform_from_u32(hash_u32(hash_u32(i + c) ^ key)) for c in range(3)])
+    d = dr.gather(mi.Vector3f, rays["d"], idx)
+    swapped = []
+    for k, out in enumerate(outs):
+        bg = background_colour(params, d, k, dr.width(idx))
+        rgb = out["rgb"] + dr.select(empty, (1.0 - out["opacity"]) * (colour - bg), 0.0)
+        swapped.append({**out, "rgb": rgb})
+    return dr.select(empty, colour, target), swapped

@@ -24,7 +24,7 @@ from .march import _MarchedGrid, composite, composite_marched
 from .occupancy import occupied
 from .regularisers import blocked_regulariser
 from .samples import FieldParams, field_at, field_position, sample_along_rays
-from .sky import sky_logits
+from .sky import background_colour
 from .view import view_residual
 
 
@@ -119,18 +119,6 @@ def _over_background(params: FieldParams, s: dict, sums: list, members: list, re
             out["regulariser"] = reg
         outs.append(out)
     return outs
-
-
-def background_colour(params: FieldParams, d, member, n: int):
-    """Member ``member``'s background colour (``mi.Color3f``, ``n`` rays) behind
-    rays along unit directions ``d`` (``mi.Vector3f``): its constant colour, plus
-    the directional map's residual where the field has one (see :mod:`.sky`)."""
-    # One background index per ray: the gradient of a background read once and
-    # broadcast to every ray would take a reduction kernel per channel and member.
-    logits = mi.Color3f(dr.gather(mi.Vector3f, params.background, dr.zeros(mi.UInt32, n) + mi.UInt32(member)))
-    if params.sky is not None:
-        logits = logits + sky_logits(params.sky, params.sky_resolution, params.n_members, mi.Vector3f(d), member)
-    return mi.Color3f(*[dr.rcp(1.0 + dr.exp(-logits[c])) for c in range(3)])
 
 
 def _view_colour(params: FieldParams, s: dict, distance, member):

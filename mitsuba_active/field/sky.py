@@ -67,3 +67,15 @@ def sky_logits(table, resolution: int, n_members: int, d, member):
     for idx, w in sky_texels(d, resolution):
         out = dr.fma(dr.gather(mi.Vector3f, table, idx * K + mem, mode=reduce_mode()), w, out)
     return mi.Color3f(out)
+
+
+def background_colour(params, d, member, n: int):
+    """Member ``member``'s background colour (``mi.Color3f``, ``n`` rays) behind
+    rays along unit directions ``d`` (``mi.Vector3f``): its constant colour, plus
+    the directional map's residual where the field has one (see :mod:`.sky`)."""
+    # One background index per ray: the gradient of a background read once and
+    # broadcast to every ray would take a reduction kernel per channel and member.
+    logits = mi.Color3f(dr.gather(mi.Vector3f, params.background, dr.zeros(mi.UInt32, n) + mi.UInt32(member)))
+    if params.sky is not None:
+        logits = logits + sky_logits(params.sky, params.sky_resolution, params.n_members, mi.Vector3f(d), member)
+    return mi.Color3f(*[dr.rcp(1.0 + dr.exp(-logits[c])) for c in range(3)])

@@ -9,7 +9,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cameras import RIG_KINDS
 from ..checks import choice_named, is_number, is_whole, unknown_choice
 from ..datasets import open_source
 from ..errors import UserError
@@ -17,6 +16,7 @@ from ..field import FieldConfig
 from ..field.config import DEFAULT_PRESET, FIELD_PRESETS, MAX_MEMBERS, MAX_STEPS
 from ..groundtruth import MAX_SPP
 from ..planners.base import planner_folder, resolve_reference
+from ..rigs import RIG_KINDS
 from ..training import MAX_CANDIDATE_RAYS, PLANNER_INIT_SCALE, has_distances
 from ..travel import TRAVEL_SETTINGS, travel_problems
 

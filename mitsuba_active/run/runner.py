@@ -27,7 +27,7 @@ import numpy as np
 from tqdm import tqdm
 
 from .. import __version__
-from ..cameras import Camera, look_at, snapped_up
+from ..cameras import Camera, look_at
 from ..continuous import PoseSampler, RigSurface, choose_fresh
 from ..datasets import DatasetSource
 from ..embodiments import make_embodiment
@@ -40,6 +40,7 @@ from ..planners import PlanningState, make_planner
 from ..planners.base import planner_digest, planner_label, planner_rng, unseen
 from ..protocol import evaluate_views, new_field
 from ..report import contact_sheet, plot_metrics, plot_views
+from ..rigs import snapped_up
 from ..training import evaluation_note, has_distances, predict_view, scores_line, sparse_candidate_rays, train_on
 from ..travel import Journey, diameter_of, stops_along
 from ..travelplots import plot_travel

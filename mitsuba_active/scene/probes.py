@@ -15,7 +15,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from ..cameras import fibonacci_directions
+from ..rigs import fibonacci_directions
 
 #: Rays cast from each probe point, spread evenly over the sphere.
 PROBE_RAYS = 512

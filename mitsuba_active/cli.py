@@ -463,7 +463,7 @@ def _plan(cfg, out: Path, quiet: bool, given=frozenset(), notes=()) -> dict:
         click.echo(f"note: {Path(cfg.scene).name} is an object seen from outside; --rig interior puts the "
                    "cameras inside its bounding box", err=True)
     if cfg.distance_weight == 0 and isinstance(source, SceneSource) and source.scene.interior:
-        # Colour alone leaves a sparse-view field free to fill a room with fog (see docs/usage.md).
+        # Colour alone leaves a sparse-view field free to fill a room with fog (see docs/cli.md).
         click.echo(f"note: {Path(cfg.scene).name} is a room seen from inside, which fits far better "
                    f"with the distance maps: try --distance-weight {INTERIOR_DISTANCE_WEIGHT:g}", err=True)
     # tqdm.write keeps a line from landing on a progress bar that is being drawn.

@@ -230,7 +230,8 @@ def test_ensemble_size_counts_only_where_a_planner_trains_one(source, tmp_path):
     with_options = {**cfg("rfe", 2), "planner_options": {"form": "sum"}}
     assert config_differences(cfg("rfe", 2), with_options) == []
     assert config_differences(with_options, {**with_options, "planner_options": {"form": "log"}}) == [
-        "planner_options: {'form': 'sum'} -> {'form': 'log'}"]
+        "planner_options: {'form': 'sum', 'bootstrap': 'none', 'min_opacity': 0.0} "
+        "-> {'form': 'log', 'bootstrap': 'none', 'min_opacity': 0.0}"]
     fisher = cfg("fisher", 1)
     assert config_differences(fisher, {**fisher, "planner_options": {"lam": 0.1}}) == []
     done = _run(source, tmp_path / "e", planner="even", ensemble=3)

@@ -26,7 +26,7 @@ import numpy as np
 
 from .checks import is_number
 from .errors import UserError
-from .lens import Lens, lens_from_dict, lens_to_dict, pixel_rays
+from .lens import Lens, distort, lens_from_dict, lens_to_dict, pixel_rays
 
 #: Most pixels of a camera's image (4096x4096): one image's rays are one batch.
 MAX_PIXELS, MAX_PIXELS_TEXT = 4096 * 4096, "4096x4096"
@@ -238,6 +238,23 @@ def camera_rays(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
         camera._rays["all"] = (np.ascontiguousarray(o, dtype=np.float32), np.ascontiguousarray(d, dtype=np.float32))
         camera._rays["valid"] = valid
     return camera._rays["all"]
+
+
+def camera_pixels(camera: Camera, points) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where (N, 3) ``points`` (scene units) land in ``camera``'s image, through its
+    lens if it has one: (N,) float64 columns and rows (pixels; OpenCV's x right, y
+    down, 0 at the image's corner), and (N,) bool: in front of it and inside the image."""
+    axes = camera.to_world[:3, :3] / np.linalg.norm(camera.to_world[:3, :3], axis=0)
+    local = (np.asarray(points, np.float64) - camera.position) @ axes  # Mitsuba's frame: +X left, +Y up, +Z forward
+    z = local[:, 2]
+    k = camera.intrinsics()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x, y = -local[:, 0] / z, -local[:, 1] / z  # OpenCV's normalised image coordinates
+        if camera.lens is not None:
+            x, y = distort(camera.lens, x, y)
+        col, row = k[0, 2] + k[0, 0] * x, k[1, 2] + k[1, 1] * y
+    inside = (z > 0) & (col >= 0) & (col < camera.width) & (row >= 0) & (row < camera.height)
+    return col, row, inside
 
 
 def camera_valid(camera: Camera) -> np.ndarray:

@@ -39,8 +39,7 @@ from dataclasses import fields
 
 import numpy as np
 
-from .cameras import camera_rays
-from .lens import distort
+from .cameras import camera_pixels, camera_rays
 from .checks import is_whole
 from .errors import UserError
 from .field import Ensemble, FieldConfig
@@ -147,20 +146,10 @@ def surface_points(views: list[View], limit: int, seed: int) -> np.ndarray:
 def seen_points(view: View, points: np.ndarray) -> np.ndarray:
     """(N,) bool: which of the (N, 3) ``points`` the view sees, by its camera and distance map."""
     cam = view.camera
-    axes = cam.to_world[:3, :3] / np.linalg.norm(cam.to_world[:3, :3], axis=0)
-    offset = points - cam.position
-    local = offset @ axes  # Mitsuba's camera frame: +X left, +Y up, +Z forward
-    z = local[:, 2]
-    k = cam.intrinsics()
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x, y = -local[:, 0] / z, -local[:, 1] / z  # OpenCV's normalised image coordinates
-        if cam.lens is not None:
-            x, y = distort(cam.lens, x, y)
-        col, row = k[0, 2] + k[0, 0] * x, k[1, 2] + k[1, 1] * y
-    inside = (z > 0) & (col >= 0) & (col < cam.width) & (row >= 0) & (row < cam.height)
+    col, row, inside = camera_pixels(cam, points)
     r, c = row[inside].astype(int), col[inside].astype(int)
-    dist = np.linalg.norm(offset[inside], axis=1)
-    footprint = dist / k[0, 0]  # one pixel's width at the point's distance
+    dist = np.linalg.norm(points[inside] - cam.position, axis=1)
+    footprint = dist / cam.intrinsics()[0, 0]  # one pixel's width at the point's distance
     visible = view.mask[r, c].astype(bool) & (np.abs(view.distance[r, c] - dist) <= VISIBILITY_PIXELS * footprint)
     seen = np.zeros(len(points), bool)
     seen[np.flatnonzero(inside)[visible]] = True

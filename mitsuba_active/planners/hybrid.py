@@ -20,8 +20,9 @@ the ensemble's depths) when the next is scored.
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import maximum_filter
 
-from ..cameras import camera_rays
+from ..cameras import camera_pixels, camera_rays
 from ..checks import is_number, is_whole
 from ..errors import UserError
 from ..field import Ensemble
@@ -35,16 +36,9 @@ DEPTH_TOLERANCE = 0.05
 
 def project(camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Pixel indices (N,) int64, row-major, of ``points`` (N, 3) in ``camera``'s
-    image (pinhole; a lens's distortion is left out), and (N,) bool: in front of
-    it and inside the image."""
-    rot, centre = camera.to_world[:3, :3], camera.to_world[:3, 3]
-    local = (np.asarray(points, np.float64) - centre) @ rot  # Mitsuba's frame: x left, y up, z forward
-    z = local[:, 2]
-    k = camera.intrinsics()
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = k[0, 0] * -local[:, 0] / z + k[0, 2]  # OpenCV's x right, y down
-        v = k[1, 1] * -local[:, 1] / z + k[1, 2]
-    inside = (z > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    image (through its lens, :func:`~mitsuba_active.cameras.camera_pixels`), and
+    (N,) bool: in front of it and inside the image."""
+    u, v, inside = camera_pixels(camera, points)
     ui = np.clip(np.where(inside, u, 0), 0, camera.width - 1).astype(np.int64)
     vi = np.clip(np.where(inside, v, 0), 0, camera.height - 1).astype(np.int64)
     return vi * camera.width + ui, inside
@@ -54,9 +48,7 @@ def farthest_around(depth: np.ndarray) -> np.ndarray:
     """(H, W) largest depth of each pixel's 3 x 3 neighbourhood in ``depth`` (H, W):
     a point near a coarse depth map's silhouette is not hidden by the pixel's
     nearer surface."""
-    padded = np.pad(depth, 1, mode="edge")
-    h, w = depth.shape
-    return np.max([padded[i:i + h, j:j + w] for i in range(3) for j in range(3)], axis=0)
+    return maximum_filter(depth, size=3, mode="nearest")
 
 
 def seen_cosines(points: np.ndarray, centres: np.ndarray, camera, depth: np.ndarray) -> np.ndarray:

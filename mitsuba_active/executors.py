@@ -163,7 +163,10 @@ def _init_worker(parent: int):
         # collection) is printed and dropped there: deliver it again, to the job's own code.
         if isinstance(info.exc_value, SystemExit) and signal.getsignal(signal.SIGTERM) is signal.SIG_IGN:
             signal.signal(signal.SIGTERM, stop)
-            os.kill(os.getpid(), signal.SIGTERM)
+            # From another thread, a moment later: sent from here, the stop would be raised inside this hook.
+            later = threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGTERM))
+            later.daemon = True
+            later.start()
             return
         sys.__unraisablehook__(info)
 

@@ -156,7 +156,8 @@ def choose_among(planner, journey, state: PlanningState, shown_first: list[Camer
     if planner.needs_ensemble:
         shown.candidate_rays = sparse_candidate_rays(cams, cfg.rays_per_candidate, cfg.seed + 1)
     picks, scores = planner.checked_select(shown, batch)
-    picks = journey.weigh(picks, scores, unseen(shown), positions=np.stack([c.position for c in cams]))
+    picks = journey.weigh(picks, scores, unseen(shown), positions=np.stack([c.position for c in cams]),
+                          views=np.stack([c.forward for c in cams]))
     return picks, scores
 
 

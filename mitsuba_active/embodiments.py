@@ -8,8 +8,12 @@ margin from every surface of the Mitsuba scene, along the shortest route
 it finds: the straight segment when that is clear, else a shortest path
 over a visibility graph of waypoints offset from the scene's surfaces,
 shortened by cutting corners wherever the cut is clear. ``ground`` is a
-holonomic wheeled base: it moves as the drone does, but in the plane
-across the scene's up axis at the height of its start pose.
+wheeled base in the plane across the scene's up axis at the height of its
+start pose: holonomic, it moves as the drone does; with a turning radius
+it is a car that drives forward along Dubins paths (:mod:`.dubins`),
+facing where its camera looks at each pose (its camera is fixed to it;
+a camera looking straight up or down leaves the heading free, and the
+base then faces along the straight line to the other pose).
 
 Collisions are ray casts through the scene: a segment is clear when its
 axis and eight lines around it, at the margin's distance, meet no surface;
@@ -27,6 +31,7 @@ import numpy as np
 from scipy.sparse.csgraph import dijkstra
 
 from .checks import unknown_choice
+from .dubins import DubinsPath, dubins_paths
 from .errors import UserError
 from .rigs import fibonacci_directions
 from .scene.probes import first_hits
@@ -80,16 +85,22 @@ class Embodiment:
         """(N,) bool: whether the camera can be at each of ``points`` (N, 3)."""
         raise NotImplementedError
 
-    def paths(self, start: np.ndarray, targets: np.ndarray) -> list[Route]:
-        """The routes from ``start`` (3,) to each of ``targets`` (T, 3)."""
+    def paths(self, start: np.ndarray, targets: np.ndarray, start_view: np.ndarray | None = None,
+              target_views: np.ndarray | None = None) -> list[Route]:
+        """The routes from ``start`` (3,) to each of ``targets`` (T, 3). ``start_view`` (3,) and
+        ``target_views`` (T, 3) are the cameras' unit viewing directions at them (None: any),
+        which only a base that must turn to face them heeds."""
         raise NotImplementedError
 
     def start(self, position: np.ndarray) -> None:
         """Set out from ``position`` (3,): the first capture's."""
 
-    def path(self, a: np.ndarray, b: np.ndarray) -> Route:
-        """The route from ``a`` (3,) to ``b`` (3,)."""
-        return self.paths(a, np.asarray(b, dtype=np.float64)[None])[0]
+    def path(self, a: np.ndarray, b: np.ndarray, a_view: np.ndarray | None = None,
+             b_view: np.ndarray | None = None) -> Route:
+        """The route from ``a`` (3,) to ``b`` (3,), the cameras there looking along ``a_view``, ``b_view``
+        (3,) (None: any)."""
+        b_views = None if b_view is None else np.asarray(b_view, dtype=np.float64)[None]
+        return self.paths(a, np.asarray(b, dtype=np.float64)[None], a_view, b_views)[0]
 
     def _route(self, points) -> Route:
         points = np.asarray(points, dtype=np.float64)
@@ -106,7 +117,7 @@ class Teleport(Embodiment):
     def reachable(self, points):
         return np.ones(len(np.atleast_2d(points)), dtype=bool)
 
-    def paths(self, start, targets):
+    def paths(self, start, targets, start_view=None, target_views=None):
         start = np.asarray(start, dtype=np.float64)
         return [Route(np.stack([start, t]), 0.0, 0.0) for t in np.asarray(targets, dtype=np.float64)]
 
@@ -201,7 +212,7 @@ class Drone(Embodiment):
         points = np.concatenate(points)
         return points[self.reachable(points)]
 
-    def paths(self, start, targets):
+    def paths(self, start, targets, start_view=None, target_views=None):
         start = np.asarray(start, dtype=np.float64)
         targets = np.atleast_2d(np.asarray(targets, dtype=np.float64))
         direct = self.clear(np.broadcast_to(start, targets.shape), targets)
@@ -262,20 +273,37 @@ class Drone(Embodiment):
 
 @dataclass
 class Ground(Drone):
-    """A holonomic wheeled base: the camera keeps the height of its start pose along ``up``.
+    """A wheeled base: the camera keeps the height of its start pose along ``up``.
+
+    Holonomic without a turning radius; with one, a car that drives forward
+    only, along the shortest Dubins path (:mod:`.dubins`) that keeps the
+    margin between poses, facing at each pose where its camera looks
+    horizontally. Where no path is clear it drives the holonomic route's
+    polyline (its corners cut), a Dubins path from corner to corner, facing
+    at each corner along the bisector of the lines that meet there; where
+    that too meets a surface, the pose is out of reach.
 
     Attributes:
         up: (3,) unit up axis of the scene.
         height: the camera's height along ``up`` (scene units; None: set by :meth:`start`).
+        turning_radius: the least radius of its turns (scene units; 0: holonomic, it turns in place).
     """
 
     name: ClassVar[str] = "ground"
     up: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
     height: float | None = None
+    turning_radius: float = 0.0
 
     def __post_init__(self):
         super().__post_init__()
+        if not (np.isfinite(self.turning_radius) and self.turning_radius >= 0):
+            raise ValueError(f"a turning radius must be a finite number >= 0, got {self.turning_radius!r}")
         self.up = np.asarray(self.up, dtype=np.float64) / np.linalg.norm(self.up)
+        # The plane's axes, u then v counter-clockwise about up: a left turn is a positive angle.
+        helper = np.eye(3)[int(np.argmin(np.abs(self.up)))]
+        self._u = np.cross(self.up, helper)
+        self._u /= np.linalg.norm(self._u)
+        self._v = np.cross(self.up, self._u)
 
     def start(self, position):
         if self.height is None:
@@ -290,14 +318,98 @@ class Ground(Drone):
             return super().reachable(points)
         return self._in_plane(points) & super().reachable(points)
 
-    def paths(self, start, targets):
+    def paths(self, start, targets, start_view=None, target_views=None):
+        start = np.asarray(start, dtype=np.float64)
         targets = np.atleast_2d(np.asarray(targets, dtype=np.float64))
         self.start(start)
-        if not self._in_plane(np.asarray(start, dtype=np.float64)[None])[0]:
+        if not self._in_plane(start[None])[0]:
             raise ValueError(f"a ground route starts at the base's height {self.height}, not at {start}")
-        routes = super().paths(start, targets)
         off = ~self._in_plane(targets)  # another height: the base cannot get there
+        if self.turning_radius > 0:
+            routes = self._dubins_routes(start, targets, start_view, target_views, ~off)
+        else:
+            routes = super().paths(start, targets)
         return [Route(np.stack([start, t]), np.inf, np.inf) if o else r for r, o, t in zip(routes, off, targets)]
+
+    # -- a base with a turning radius ---------------------------------------------
+    def _flat(self, points: np.ndarray) -> np.ndarray:
+        """(N, 2) scene units: ``points`` (N, 3) in the plane's axes."""
+        return np.stack([points @ self._u, points @ self._v], axis=1)
+
+    def _lift(self, poses: np.ndarray) -> np.ndarray:
+        """(N, 3) scene units: plane poses (N, 3) (x, y, heading) at the base's height."""
+        return self.height * self.up + poses[:, :1] * self._u + poses[:, 1:2] * self._v
+
+    def _heading(self, view, chord: np.ndarray) -> float:
+        """The base's heading (radians in the plane) facing ``view`` (3,) horizontally; along
+        ``chord`` (2,) where there is no view (None or NaN) or it looks straight up or down."""
+        if view is not None:
+            f = self._flat(np.asarray(view, dtype=np.float64)[None])[0]
+            if np.hypot(*f) > 1e-6:  # False for NaN too
+                return float(np.arctan2(f[1], f[0]))
+        return float(np.arctan2(chord[1], chord[0]))
+
+    def _first_clear(self, options: list[list[DubinsPath]]) -> list[DubinsPath | None]:
+        """For each list of paths (shortest first), the first whose sampled curve keeps the margin
+        (None: none does); the lists' paths of one rank are cast together."""
+        chosen: list[DubinsPath | None] = [None] * len(options)
+        left, rank = [k for k, o in enumerate(options) if o], 0
+        while left:
+            curves = [self._lift(options[k][rank].sample()) for k in left]
+            ok = self.clear(np.concatenate([c[:-1] for c in curves]), np.concatenate([c[1:] for c in curves]))
+            ends = np.cumsum([len(c) - 1 for c in curves])
+            clear = [bool(part.all()) for part in np.split(ok, ends[:-1])]
+            for k, good in zip(left, clear):
+                if good:
+                    chosen[k] = options[k][rank]
+            rank += 1
+            left = [k for k, good in zip(left, clear) if not good and rank < len(options[k])]
+        return chosen
+
+    def _legs(self, nodes: np.ndarray, first_view, last_view) -> list[list[DubinsPath]]:
+        """Each leg's Dubins paths, shortest first, along the polyline ``nodes`` (N, 3): facing
+        ``first_view`` and ``last_view`` at its ends, along the bisector at its corners."""
+        flat = self._flat(nodes)
+        chords = np.diff(flat, axis=0)
+        units = chords / np.maximum(np.linalg.norm(chords, axis=1, keepdims=True), 1e-300)
+        headings = [self._heading(first_view, chords[0])]
+        for k in range(1, len(flat) - 1):
+            b = units[k - 1] + units[k]
+            headings.append(float(np.arctan2(*(b if np.hypot(*b) > 1e-9 else units[k])[::-1])))
+        headings.append(self._heading(last_view, chords[-1]))
+        return [dubins_paths((*flat[k], headings[k]), (*flat[k + 1], headings[k + 1]), self.turning_radius)
+                for k in range(len(flat) - 1)]
+
+    def _dubins_routes(self, start, targets, start_view, target_views, wanted: np.ndarray) -> list[Route]:
+        """The Dubins routes from ``start`` (3,) to the ``wanted`` (T,) bool of ``targets`` (T, 3)
+        (the others: not found)."""
+        views = [None] * len(targets) if target_views is None else list(target_views)
+        none = [Route(np.stack([start, t]), np.inf, np.inf) for t in targets]
+        picks = self._first_clear([self._legs(np.stack([start, t]), start_view, views[k])[0] if wanted[k] else []
+                                   for k, t in enumerate(targets)])
+        routes = [self._dubins_route([p], start, t) if p else none[k] for k, (p, t) in enumerate(zip(picks, targets))]
+        blocked = [k for k in range(len(targets)) if wanted[k] and picks[k] is None]
+        if not blocked:
+            return routes
+        # Around the geometry: the holonomic route's corners, Dubins paths between them.
+        chains = super().paths(start, targets[blocked])
+        legs = {k: self._legs(r.points, start_view, views[k]) for k, r in zip(blocked, chains) if r.found}
+        flat = [paths for k in legs for paths in legs[k]]
+        picked = iter(self._first_clear(flat))
+        for k in legs:
+            mine = [next(picked) for _ in legs[k]]
+            if all(mine):
+                routes[k] = self._dubins_route(mine, start, targets[k])
+        return routes
+
+    def _dubins_route(self, legs: list[DubinsPath], start: np.ndarray, target: np.ndarray) -> Route:
+        """The route along ``legs`` from ``start`` to ``target`` (3,): its sampled curve, its Dubins length."""
+        points = np.concatenate([self._lift(p.sample())[(0 if k == 0 else 1):] for k, p in enumerate(legs)])
+        if len(points) < 2:  # no way to go: it is there, facing the right way
+            points = np.stack([start, target])
+        points[0], points[-1] = start, target
+        length = float(sum(p.length for p in legs))
+        return Route(points, length, length / self.speed)
 
     def _make_waypoints(self) -> np.ndarray:
         # The drone's waypoints dropped onto the plane, and a grid over the scene's extent in it.
@@ -305,10 +417,7 @@ class Ground(Drone):
         flat = flat - np.outer(flat @ self.up - self.height, self.up)
         lo, hi = (np.asarray(b, dtype=np.float64) for b in (self.mi_scene.bbox().min, self.mi_scene.bbox().max))
         centre, reach = 0.5 * (lo + hi), 0.75 * np.linalg.norm(hi - lo)
-        helper = np.eye(3)[int(np.argmin(np.abs(self.up)))]
-        u = np.cross(self.up, helper)
-        u /= np.linalg.norm(u)
-        v = np.cross(self.up, u)
+        u, v = self._u, self._v
         t = np.linspace(-reach, reach, 24)
         a, b = np.meshgrid(t, t)
         base = centre - (centre @ self.up - self.height) * self.up
@@ -320,16 +429,20 @@ class Ground(Drone):
 EMBODIMENTS = {cls.name: cls for cls in (Teleport, Drone, Ground)}
 
 
-def make_embodiment(name: str, scene=None, speed: float = 1.0) -> Embodiment:
+def make_embodiment(name: str, scene=None, speed: float = 1.0, turning_radius: float = 0.0) -> Embodiment:
     """The embodiment ``name`` in ``scene`` (a :class:`~mitsuba_active.scene.Scene`, or None for a
-    dataset, which has no geometry to fly around); UserError for an unknown one."""
+    dataset, which has no geometry to fly around), a ground base's with ``turning_radius`` (scene
+    units); UserError for an unknown one, or a turning radius for another."""
     if name not in EMBODIMENTS:
         raise UserError(unknown_choice("embodiment", name, EMBODIMENTS))
+    if turning_radius and name != "ground":
+        raise UserError(f"a turning radius applies to the ground embodiment, not the {name}")
     if name == "teleport":
         return Teleport(speed=speed)
     if scene is None:
         raise UserError(f"the {name} embodiment moves through a scene's geometry; a dataset has none "
                         "(use --embodiment teleport)")
     if name == "ground":
-        return Ground(speed=speed, mi_scene=scene.mi_scene, margin=MARGIN_SHARE * scene.radius, up=scene.up)
+        return Ground(speed=speed, mi_scene=scene.mi_scene, margin=MARGIN_SHARE * scene.radius, up=scene.up,
+                      turning_radius=turning_radius)
     return Drone(speed=speed, mi_scene=scene.mi_scene, margin=MARGIN_SHARE * scene.radius)

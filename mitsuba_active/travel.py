@@ -29,6 +29,8 @@ TRAVEL_SETTINGS = {
     "travel_budget": (None, "Distance the camera may travel, in scene units [no limit]."),
     "time_budget": (None, "Mission time in seconds: travel over --speed plus --capture-time a view [no limit]."),
     "speed": (1.0, "Camera speed in scene units per second."),
+    "turning_radius": (0.0, "A ground base's least turning radius in scene units: it drives forward along Dubins "
+                            "paths, facing where its camera looks at each pose (0: holonomic)."),
     "capture_time": (0.0, "Seconds each capture takes."),
     "cost_weight": (0.0, "Weight of the travel cost against the planner's utility (0: cost-blind)."),
     "along_the_way": (None, "Also capture a view every this many scene units along each route, looking at the "
@@ -53,6 +55,11 @@ def travel_problems(cfg) -> list[str]:
             problems.append(f"{name} must be a positive number, got {value!r}")
     if not (is_number(cfg.speed, finite=True) and cfg.speed > 0):
         problems.append(f"the speed must be a positive number, got {cfg.speed!r}")
+    if not (is_number(cfg.turning_radius, finite=True) and cfg.turning_radius >= 0):
+        problems.append(f"turning_radius must be a finite number >= 0 (scene units), got {cfg.turning_radius!r}")
+    elif cfg.turning_radius > 0 and cfg.embodiment != "ground":
+        problems.append(f"turning_radius (--turning-radius) applies to a ground base, not the {cfg.embodiment} "
+                        "(choose --embodiment ground)")
     if cfg.along_the_way is not None and not (is_number(cfg.along_the_way, finite=True) and cfg.along_the_way > 0):
         problems.append(f"along_the_way must be a positive spacing in scene units, got {cfg.along_the_way!r}")
     if not isinstance(cfg.candidates_mode, str) or cfg.candidates_mode not in CANDIDATE_MODES:
@@ -93,14 +100,19 @@ class Journey:
     """A run's camera on its way: its position and the distance and time so far.
 
     ``positions``: (C, 3) float64 candidate camera positions (scene units);
-    ``diameter``: the scene's diameter (scene units), the scale of travel costs.
+    ``diameter``: the scene's diameter (scene units), the scale of travel costs;
+    ``views``: (C, 3) float64 the candidates' unit viewing directions (None: any),
+    which a base that turns to face them heeds.
     """
 
-    def __init__(self, embodiment: Embodiment, cfg, positions: np.ndarray, diameter: float):
+    def __init__(self, embodiment: Embodiment, cfg, positions: np.ndarray, diameter: float,
+                 views: np.ndarray | None = None):
         self.embodiment, self.cfg = embodiment, cfg
         self.positions = np.asarray(positions, dtype=np.float64)
+        self.views = None if views is None else np.asarray(views, dtype=np.float64).reshape(-1, 3)
         self.diameter = float(diameter)
         self.position: np.ndarray | None = None
+        self.view: np.ndarray | None = None  # the camera's viewing direction where it is
         self.legs: list[dict] = []  # per capture: {"distance", "time"} so far (cumulative)
         self.stop: Stop | None = None
 
@@ -117,7 +129,10 @@ class Journey:
         target = self.positions[index]
         if self.position is None:
             return Route(np.stack([target, target]), 0.0, 0.0)
-        return self.embodiment.path(self.position, target)
+        return self.embodiment.path(self.position, target, self.view, self._view(index))
+
+    def _view(self, index: int) -> np.ndarray | None:
+        return None if self.views is None else self.views[index]
 
     def fits(self, index: int) -> tuple[Route, str | None]:
         """The route to candidate ``index``, and why its capture does not fit the budgets (None: it fits)."""
@@ -135,14 +150,18 @@ class Journey:
                            f"{time_budget - self.time:.4g} of the time budget's {time_budget:g} s are left")
         return route, None
 
-    def add(self, position: np.ndarray) -> int:
-        """Make ``position`` (3,) the next candidate's (one the run appended); its index."""
+    def add(self, position: np.ndarray, view: np.ndarray | None = None) -> int:
+        """Make ``position`` (3,), looking along ``view`` (3,; None: any), the next candidate's (one
+        the run appended); its index."""
         self.positions = np.concatenate([self.positions, np.asarray(position, dtype=np.float64).reshape(1, 3)])
+        if self.views is not None:  # NaN: no view, the heading is free
+            view = np.full(3, np.nan) if view is None else np.asarray(view, dtype=np.float64)
+            self.views = np.concatenate([self.views, view.reshape(1, 3)])
         return len(self.positions) - 1
 
     def advance(self, index: int, route: Route) -> None:
         """Move to candidate ``index`` along ``route`` and capture there."""
-        self.position = self.positions[index]
+        self.position, self.view = self.positions[index], self._view(index)
         leg = {"distance": round(self.distance + route.length, 6),
                "time": round(self.time + route.time + self.cfg.capture_time, 6)}
         if self.embodiment.name != "teleport":  # the way it went, for the route plot
@@ -157,10 +176,11 @@ class Journey:
                     for n in range(len(captured))]
         self.legs = [dict(leg) for leg in legs[:len(captured)]]
         self.position = self.positions[captured[-1]] if captured else None
+        self.view = self._view(captured[-1]) if captured else None
 
     # -- cost-aware choice ------------------------------------------------------
     def weigh(self, picks: list[int], scores: np.ndarray | None, allowed: np.ndarray,
-              positions: np.ndarray | None = None) -> list[int]:
+              positions: np.ndarray | None = None, views: np.ndarray | None = None) -> list[int]:
         """The batch to capture, in the order of a short tour.
 
         With a cost weight and the planner's ``scores`` (C,), the picks are
@@ -168,33 +188,35 @@ class Journey:
         among ``allowed`` (C,) bool candidates (from the round's scores: a
         planner's own batch conditioning, as fisher's, is not kept); else the
         planner's picks stay. ``positions`` (C, 3): the candidates' positions when the planner was
-        offered others than the journey's (continuous candidates).
+        offered others than the journey's (continuous candidates), ``views`` (C, 3) their viewing directions.
         """
         lam = self.cfg.cost_weight
-        positions = self.positions if positions is None else np.asarray(positions, dtype=np.float64)
+        if positions is None:
+            positions, views = self.positions, self.views
+        positions = np.asarray(positions, dtype=np.float64)
         if lam > 0 and scores is not None and self.position is not None:
-            weighed = self._weighed(len(picks), scores, allowed.copy(), lam, positions)
+            weighed = self._weighed(len(picks), scores, allowed.copy(), lam, positions, views)
             picks = weighed if len(weighed) == len(picks) else picks  # too few scored: the planner's stay
         return self._tour(picks, positions)
 
     def _weighed(self, batch: int, scores: np.ndarray, allowed: np.ndarray, lam: float,
-                 positions: np.ndarray) -> list[int]:
+                 positions: np.ndarray, views: np.ndarray | None) -> list[int]:
         utility = np.where(allowed & np.isfinite(scores), scores, np.nan)
         if np.isnan(utility).all():
             return []
         lo, hi = np.nanmin(utility), np.nanmax(utility)
         utility = (utility - lo) / (hi - lo) if hi > lo else np.where(np.isnan(utility), np.nan, 1.0)
-        picks, here = [], self.position
+        picks, here, facing = [], self.position, self.view
         for _ in range(batch):
             idx = np.nonzero(~np.isnan(utility))[0]
             if not len(idx):
                 break
-            lengths = np.array([r.length for r in self.embodiment.paths(here, positions[idx])])
-            value = utility[idx] - lam * lengths / self.diameter
+            routes = self.embodiment.paths(here, positions[idx], facing, None if views is None else views[idx])
+            value = utility[idx] - lam * np.array([r.length for r in routes]) / self.diameter
             best = int(idx[np.argmax(value)])
             picks.append(best)
             utility[best] = np.nan
-            here = positions[best]
+            here, facing = positions[best], None if views is None else views[best]
         return picks
 
     def _tour(self, picks: list[int], positions: np.ndarray) -> list[int]:

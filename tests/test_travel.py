@@ -101,7 +101,7 @@ class Walk(Teleport):
     def __init__(self):
         super().__init__(speed=2.0)
 
-    def paths(self, start, targets):
+    def paths(self, start, targets, start_view=None, target_views=None):
         return [self._route([start, t]) for t in targets]
 
 

@@ -46,6 +46,8 @@ class RunConfig:
             (e.g. ``{"n_samples": 32}``), for the planner's ensemble and the evaluation field alike.
         embodiment, travel_budget, time_budget, speed, capture_time, cost_weight: how the camera
             moves and what its travel may cost (:data:`~mitsuba_active.travel.TRAVEL_SETTINGS`).
+        turning_radius: a ground base's least turning radius, scene units (0: holonomic; above
+            0 it drives forward along Dubins paths, facing where its camera looks).
         along_the_way: spacing (scene units) of the views a moving camera also captures along
             each route, looking at the scene's centre (None: none).
         candidates_mode: ``pool`` (the rig's fixed candidates) or ``continuous`` (a fresh
@@ -79,6 +81,7 @@ class RunConfig:
     travel_budget: float | None = TRAVEL_SETTINGS["travel_budget"][0]
     time_budget: float | None = TRAVEL_SETTINGS["time_budget"][0]
     speed: float = TRAVEL_SETTINGS["speed"][0]
+    turning_radius: float = TRAVEL_SETTINGS["turning_radius"][0]
     capture_time: float = TRAVEL_SETTINGS["capture_time"][0]
     cost_weight: float = TRAVEL_SETTINGS["cost_weight"][0]
     along_the_way: float | None = TRAVEL_SETTINGS["along_the_way"][0]

@@ -136,9 +136,9 @@ class Run:
         self.planner.check_ensemble_size(cfg.ensemble)
         source_field_config(source, cfg)  # field options are checked before anything is written
         self.env = ActiveViewEnv(source, cfg.budget, allow_repeats=True)  # the random planner repeats views
-        self.journey = Journey(make_embodiment(cfg.embodiment, getattr(source, "scene", None), cfg.speed), cfg,
-                               [c.to_world[:3, 3] for c in source.candidates],
-                               diameter_of(source.bbox_min, source.bbox_max))
+        embodiment = make_embodiment(cfg.embodiment, getattr(source, "scene", None), cfg.speed, cfg.turning_radius)
+        self.journey = Journey(embodiment, cfg, [c.to_world[:3, 3] for c in source.candidates],
+                               diameter_of(source.bbox_min, source.bbox_max), [c.forward for c in source.candidates])
         self.sampler = None
         if cfg.candidates_mode == "continuous":
             self.sampler = PoseSampler(RigSurface(source.candidates, source.scene.up), self.journey.embodiment,
@@ -164,7 +164,7 @@ class Run:
     def _add_camera(self, camera, kind: str, record: bool = True) -> int:
         """Make ``camera`` a candidate of the run (``kind``: why it was added); its index."""
         index = self.env.add_candidate(camera)
-        self.journey.add(camera.position)
+        self.journey.add(camera.position, camera.forward)
         if record:
             self.record.setdefault("added", []).append({"camera": camera.to_dict(), "kind": kind})
         return index

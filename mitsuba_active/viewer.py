@@ -12,8 +12,8 @@ import threading
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
-from PIL import Image
 
 from .cameras import Camera
 from .camerascene import camera_scene
@@ -82,14 +82,17 @@ def _vertical_fov(cam: dict) -> float:
 
 def thumbnail(path) -> np.ndarray | None:
     """The image file ``path`` as RGB (h, w, 3) uint8, shrunk to at most :data:`THUMBNAIL_PX` a side
-    (aspect kept); None when it is missing."""
-    path = Path(path)
-    if not path.is_file():
+    (aspect kept); None when it is missing or unreadable."""
+    # OpenCV, not PIL: the cameras' lenses have loaded it already.
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR) if Path(path).is_file() else None
+    if bgr is None:
         return None
-    with Image.open(path) as img:
-        thumb = img.convert("RGB")
-    thumb.thumbnail((THUMBNAIL_PX, THUMBNAIL_PX))
-    return np.asarray(thumb)
+    h, w = bgr.shape[:2]
+    scale = min(1.0, THUMBNAIL_PX / max(h, w))
+    if scale < 1.0:
+        size = (max(1, round(w * scale)), max(1, round(h * scale)))
+        bgr = cv2.resize(bgr, size, interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(bgr[..., ::-1])
 
 
 def viridis(t: float) -> tuple[int, int, int]:

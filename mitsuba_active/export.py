@@ -36,8 +36,8 @@ from .datasets import mitsuba_to_opengl
 from .errors import FolderError, UserError, first_line
 from .imageio_utils import atomic_write, new_entries, read_exr, remove_new, srgb_to_linear, write_exr, write_png
 from .interrupts import interrupts_deferred
+from .record import run_cameras
 from .run import RunConfig, read_record
-from .run.record import run_cameras
 
 #: The names of the files an export writes beside its JSON files.
 _WRITTEN = re.compile(r"(images|masks)/(view|heldout)_\d{3,}\.png|distance/(view|heldout)_\d{3,}\.exr")

@@ -8,7 +8,7 @@ import imageio.v3 as iio
 import numpy as np
 
 from .imageio_utils import atomic_write
-from .rigs import up_frame
+from .upright import up_vertical
 
 
 def _plt():
@@ -103,13 +103,6 @@ def contact_sheet(images: list, labels: list[str], path, columns: int = 5) -> Pa
             ax.imshow(np.clip(img, 0.0, 1.0) if isinstance(img, np.ndarray) else iio.imread(img))
             ax.set_title(labels[k], fontsize=8)
     return _save(fig, path)
-
-
-def up_vertical(points, up=(0.0, 1.0, 0.0)) -> np.ndarray:
-    """World points (N, 3) in a frame whose third axis is ``up``: matplotlib's
-    3D axes draw their third axis vertically."""
-    q = np.asarray(points, dtype=np.float64).reshape(-1, 3) @ up_frame(up)  # columns: side, up, side
-    return q[:, [0, 2, 1]] * np.array([1.0, -1.0, 1.0])  # keep the frame right-handed
 
 
 def plot_views(candidates, captured, heldout, bbox_min, bbox_max, path, up=(0.0, 1.0, 0.0),

@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 from .cameras import Camera, look_at, rigid_pose
 from .checks import is_number, is_whole, unknown_choice
 from .errors import UserError
+from .upright import up_frame
 
 #: Most cameras a generated rig makes (candidates, and held-out views).
 MAX_VIEWS = 100_000
@@ -85,26 +86,6 @@ def _mirrored_below(dirs: np.ndarray, y_min: float) -> np.ndarray:
 def _pool_size(n_candidates: int, n_heldout: int) -> int:
     """Points of the spiral that held-out views are picked from: fine beside the candidates' spacing."""
     return max(4096, 8 * (n_candidates + n_heldout))
-
-
-def snapped_up(cameras) -> np.ndarray:
-    """The world axis (3,) closest to the cameras' mean up vector, with its sign:
-    the up axis of a scene or dataset as its cameras were set up (Y without cameras)."""
-    up = np.zeros(3)
-    mean = np.mean([c.to_world[:3, 1] for c in cameras], axis=0) if len(cameras) else np.array([0.0, 1.0, 0.0])
-    axis = int(np.argmax(np.abs(mean)))
-    up[axis] = 1.0 if mean[axis] >= 0 else -1.0
-    return up
-
-
-def up_frame(up=(0.0, 1.0, 0.0)) -> np.ndarray:
-    """(3, 3) rotation whose second column is ``up``: maps a Y-up rig into a world with that up axis."""
-    up = np.asarray(up, dtype=np.float64)
-    up = up / np.linalg.norm(up)
-    a = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    z = np.cross(a, up)
-    z /= np.linalg.norm(z)
-    return np.stack([np.cross(up, z), up, z], axis=1)
 
 
 def _cameras_around(center, radius, dirs_y_up, up, fov, width, height, near, far):

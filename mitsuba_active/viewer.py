@@ -1,6 +1,9 @@
 """The interactive viewer of a run folder, on viser: cameras, each round's scores, captures and renders.
 
 viser is an optional dependency (``pip install 'mitsuba-active[viewer]'``), imported when a viewer starts.
+The page's first paint needs only the record and the cameras: the field and
+its renderer load on the first click (:mod:`.ensembleimages`), the scene goes
+out as one batch, and captured views as small JPEG thumbnails.
 """
 
 from __future__ import annotations
@@ -9,23 +12,27 @@ import threading
 import time
 from pathlib import Path
 
-import imageio.v3 as iio
+import cv2
 import numpy as np
-from matplotlib import colormaps
 
 from .cameras import Camera
+from .camerascene import camera_scene
 from .errors import UserError
-from .field import Ensemble
-from .imageio_utils import colorize
-from .run import read_record
-from .training import predict_view
-from .webpage import camera_scene
+from .record import read_record, run_cameras
 
 VIEWER_EXTRA = "pip install 'mitsuba-active[viewer]'"
 
 #: Colours (RGB, 0-255) of the camera kinds; candidates are coloured by score.
 HELDOUT_COLOUR, CAPTURED_COLOUR, INITIAL_COLOUR, UNSCORED_COLOUR = (30, 110, 220), (220, 30, 30), (200, 90, 0), \
     (170, 170, 170)
+
+#: matplotlib's viridis (RGB, 0-255) at 17 even steps from 0 to 1: linear between them, within 5 of it.
+VIRIDIS = np.array([[68, 1, 84], [72, 24, 106], [71, 45, 123], [66, 64, 134], [59, 82, 139], [51, 99, 141],
+                    [44, 114, 142], [38, 130, 142], [33, 145, 140], [31, 160, 136], [40, 174, 128], [63, 188, 115],
+                    [94, 201, 98], [132, 212, 75], [173, 220, 48], [216, 226, 25], [253, 231, 37]], dtype=float)
+
+#: Longest side (pixels) of a captured view's thumbnail on its frustum, sent as JPEG of this quality.
+THUMBNAIL_PX, THUMBNAIL_QUALITY = 64, 80
 
 
 def _viser():
@@ -73,8 +80,26 @@ def _vertical_fov(cam: dict) -> float:
     return float(2.0 * np.arctan(np.tan(np.radians(cam["fov"]) / 2.0) * cam["aspect"]))
 
 
+def thumbnail(path) -> np.ndarray | None:
+    """The image file ``path`` as RGB (h, w, 3) uint8, shrunk to at most :data:`THUMBNAIL_PX` a side
+    (aspect kept); None when it is missing or unreadable."""
+    # OpenCV, not PIL: the cameras' lenses have loaded it already.
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR) if Path(path).is_file() else None
+    if bgr is None:
+        return None
+    h, w = bgr.shape[:2]
+    scale = min(1.0, THUMBNAIL_PX / max(h, w))
+    if scale < 1.0:
+        size = (max(1, round(w * scale)), max(1, round(h * scale)))
+        bgr = cv2.resize(bgr, size, interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(bgr[..., ::-1])
+
+
 def viridis(t: float) -> tuple[int, int, int]:
-    return tuple(int(round(255 * c)) for c in colormaps["viridis"](float(np.clip(t, 0.0, 1.0)))[:3])
+    """The colour (RGB, 0-255) of ``t`` in [0, 1] (clipped) on :data:`VIRIDIS`."""
+    steps = np.linspace(0.0, 1.0, len(VIRIDIS))
+    t = float(np.clip(t, 0.0, 1.0))
+    return tuple(int(round(np.interp(t, steps, VIRIDIS[:, k]))) for k in range(3))
 
 
 class RunViewer:
@@ -87,7 +112,7 @@ class RunViewer:
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.scene.set_up_direction("+z")
         self._lock = threading.Lock()
-        self._ensemble = None  # (file name, field) of the planner's ensemble, read on the first click
+        self._ensemble = None  # the run's ensemble (ensembleimages.RunEnsemble), made on the first click
         self._gui_round = None
         self._path = None  # the line through the captured views, in capture order
         self.handles: dict = {}
@@ -105,11 +130,12 @@ class RunViewer:
         rec = read_run(self.run_dir) if not force else self.rec
         if not force and rec == self.rec:
             return False
-        with self._lock:
+        # One batch: a page applies the scene at once instead of over a frame per window of messages.
+        with self._lock, self.server.atomic():
             self.rec = rec
             self.data = camera_scene(rec)
-            self._draw_static()
             self._make_slider()
+            self._draw_static()
             self._draw_round()
         return True
 
@@ -123,14 +149,15 @@ class RunViewer:
         self.size = 0.035 * float(extent)
         for i, cam in enumerate(data["heldout"]):
             self._frustum(f"/heldout/{i:03d}", cam, 0.7, HELDOUT_COLOUR, ("heldout", i))
-        for i, cam in enumerate(data["candidates"]):
-            self._frustum(f"/candidates/{i:03d}", cam, 0.5, UNSCORED_COLOUR, ("candidate", i))
+        # Drawn in the slider's round's colours: no second message per candidate to colour it.
+        for i, (cam, colour) in enumerate(zip(data["candidates"], self._candidate_colours())):
+            self._frustum(f"/candidates/{i:03d}", cam, 0.5, colour, ("candidate", i))
 
     def _frustum(self, name, cam, scale, colour, what, image=None, visible=True):
         handle = self.server.scene.add_camera_frustum(
             name, fov=_vertical_fov(cam), aspect=1.0 / cam["aspect"], scale=scale * self.size, color=colour,
-            wxyz=opencv_wxyz(cam), position=np.asarray(cam["p"]), image=image, thickness=0.04 * scale * self.size,
-            visible=visible)
+            wxyz=opencv_wxyz(cam), position=np.asarray(cam["p"]), image=image, format="jpeg",
+            jpeg_quality=THUMBNAIL_QUALITY, thickness=0.04 * scale * self.size, visible=visible)
         handle.on_click(lambda event, what=what: self._clicked(what))
         self.handles[name] = handle
         return handle
@@ -146,21 +173,32 @@ class RunViewer:
             self._gui_round.on_update(self._on_round)
 
     def _on_round(self, _event) -> None:
-        with self._lock:  # a slider's callback runs beside a refresh by --follow
+        with self._lock, self.server.atomic():  # a slider's callback runs beside a refresh by --follow
             self._draw_round()
 
-    def _draw_round(self) -> None:
-        """Colour the candidates by the chosen round's scores; show the views captured up to its end."""
-        data, rounds = self.data, self.data["rounds"]
+    def _round(self) -> dict | None:
+        """The round the slider shows (None: the run has no rounds yet)."""
+        rounds = self.data["rounds"]
         k = int(self._gui_round.value) - 1 if self._gui_round is not None else -1
-        r = rounds[k] if rounds else None
+        return rounds[k] if rounds else None
+
+    def _candidate_colours(self) -> list[tuple[int, int, int]]:
+        """Each candidate's colour: its score in the slider's round on viridis, grey where it has none."""
+        r = self._round()
         scores = np.array([np.nan if s is None else s for s in (r or {}).get("scores") or []], dtype=float)
         finite = scores[np.isfinite(scores)] if scores.size else scores
         lo, hi = (finite.min(), finite.max()) if finite.size else (0.0, 1.0)
-        for i in range(len(data["candidates"])):
-            s = scores[i] if scores.size else np.nan
-            colour = UNSCORED_COLOUR if not np.isfinite(s) else viridis((s - lo) / (hi - lo) if hi > lo else 0.5)
-            self.handles[f"/candidates/{i:03d}"].color = colour
+        colours = []
+        for i in range(len(self.data["candidates"])):
+            s = scores[i] if i < scores.size else np.nan
+            colours.append(UNSCORED_COLOUR if not np.isfinite(s) else viridis((s - lo) / (hi - lo) if hi > lo else 0.5))
+        return colours
+
+    def _draw_round(self) -> None:
+        """Colour the candidates by the chosen round's scores; show the views captured up to its end."""
+        data, r = self.data, self._round()
+        for i, colour in enumerate(self._candidate_colours()):
+            self.handles[f"/candidates/{i:03d}"].color = colour  # viser sends only a changed colour
         shown = r["views"] if r else len(data["captured"])
         for n, i in enumerate(data["captured"]):
             name = f"/captured/{n:03d}"
@@ -181,30 +219,22 @@ class RunViewer:
             self._path = self.server.scene.add_line_segments("/path", segments, colors=CAPTURED_COLOUR,
                                                              thickness=2.0, thickness_units="screen")
 
-    def _view_image(self, n: int):
-        path = self.run_dir / "views" / f"view_{n:03d}.png"
-        return iio.imread(path)[..., :3] if path.is_file() else None
+    def _view_image(self, n: int) -> np.ndarray | None:
+        return thumbnail(self.run_dir / "views" / f"view_{n:03d}.png")
 
     # -- rendering ------------------------------------------------------------
-    def _field(self):
-        name = self.rec.get("ensemble_file")
-        if not name or not (self.run_dir / name).is_file():
-            return None
-        if self._ensemble is None or self._ensemble[0] != name:
-            self._ensemble = (name, Ensemble.load(str(self.run_dir / name)))
-        return self._ensemble[1]
-
     def render(self, camera: Camera) -> dict | None:
         """The planner's ensemble's mean and variance images from ``camera`` (None: the run keeps no ensemble)."""
-        field = self._field()
-        if field is None:
-            return None
-        pred = predict_view(field, camera)
-        return {"mean": pred["rgb"], "variance": colorize(pred["rgb_var"].mean(axis=2), vmin=0.0)}
+        # Here, not above: the field and Dr.Jit's renderer load on the first click, not while the page opens.
+        from .ensembleimages import RunEnsemble
+
+        if self._ensemble is None:
+            self._ensemble = RunEnsemble(self.run_dir)
+        return self._ensemble.render(self.rec, camera)
 
     def _clicked(self, what) -> None:
         kind, i = what
-        cams = self.rec["heldout"] if kind == "heldout" else self.rec["candidates"]
+        cams = self.rec["heldout"] if kind == "heldout" else run_cameras(self.rec)  # with the cameras it added
         index = self.rec["captured"][i] if kind == "captured" else i
         text = {"candidate": f"candidate {i}", "heldout": f"held-out view {i}",
                 "captured": f"capture #{i} (candidate {index})"}[kind]

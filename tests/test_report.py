@@ -4,8 +4,9 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from mitsuba_active.report import plot_views, up_vertical
-from mitsuba_active.rigs import fibonacci_sphere, snapped_up
+from mitsuba_active.report import plot_views
+from mitsuba_active.rigs import fibonacci_sphere
+from mitsuba_active.upright import snapped_up, up_vertical
 from tests.conftest import tiny_source
 
 
@@ -193,8 +194,9 @@ def test_a_page_of_an_old_record_shows_what_it_holds_and_stays_small(browser, tm
 def test_a_moving_cameras_route_is_drawn_as_it_went(browser, tmp_path):
     """Each leg's recorded route (a detour around the object) is drawn, in the page and in the viewer's
     segments; a leg without one (a record from before routes were kept) is a straight line."""
+    from mitsuba_active.camerascene import camera_scene
     from mitsuba_active.viewer import path_segments
-    from mitsuba_active.webpage import camera_scene, write_run_page
+    from mitsuba_active.webpage import write_run_page
 
     cams = fibonacci_sphere(12, (0, 0, 0), 2.0, width=16, height=16)
     captured = [0, 5, 9, 3]
@@ -310,6 +312,37 @@ def test_the_viewer_shows_a_run_and_follows_it(tiny_run, browser, tmp_path):
     finally:
         stop.set()
         viewer.close()
+
+
+def test_the_viewer_opens_without_the_field_or_the_plots():
+    """Drawing the cameras loads neither the field and its training nor matplotlib or scipy: they come on
+    the first click (the field) or not at all."""
+    import subprocess
+    import sys
+
+    heavy = ("mitsuba_active.field", "mitsuba_active.training", "mitsuba_active.run", "mitsuba_active.webpage",
+             "matplotlib", "scipy")
+    code = (f"import sys; import mitsuba_active.viewer; print([m for m in {heavy!r} if m in sys.modules])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+
+
+def test_the_viewers_thumbnails_and_colours(tmp_path):
+    from matplotlib import colormaps
+
+    from mitsuba_active.viewer import THUMBNAIL_PX, thumbnail, viridis
+
+    colour = (200, 40, 10)
+    rgba = np.tile(np.array(colour + (255,), np.uint8), (2 * THUMBNAIL_PX, 4 * THUMBNAIL_PX, 1))
+    iio.imwrite(tmp_path / "v.png", rgba)
+    thumb = thumbnail(tmp_path / "v.png")
+    assert thumb.shape == (THUMBNAIL_PX // 2, THUMBNAIL_PX, 3) and thumb.dtype == np.uint8
+    assert np.abs(thumb.astype(int) - colour).max() <= 1
+    assert thumbnail(tmp_path / "missing.png") is None
+    # The viewer's viridis, without matplotlib, is matplotlib's to within 5 of 255.
+    for t in np.linspace(-0.1, 1.1, 121):
+        want = 255 * np.asarray(colormaps["viridis"](float(np.clip(t, 0, 1)))[:3])
+        assert np.abs(np.array(viridis(t)) - want).max() <= 5, t
 
 
 def test_view_refuses_a_folder_without_a_run_or_without_viser(tmp_path, monkeypatch):

@@ -9,9 +9,9 @@ from mitsuba_active.cameras import Camera
 from mitsuba_active.cli import main
 from mitsuba_active.continuous import PoseSampler, RigSurface
 from mitsuba_active.embodiments import Route, make_embodiment
+from mitsuba_active.record import ALONG_THE_WAY, CONTINUOUS, along_the_way_views, run_cameras
 from mitsuba_active.rigs import check_disjoint
 from mitsuba_active.run import Run, RunConfig, read_record
-from mitsuba_active.run.record import ALONG_THE_WAY, CONTINUOUS, along_the_way_views, run_cameras
 from mitsuba_active.travel import along_the_way
 from tests.conftest import tiny_source
 

@@ -18,8 +18,8 @@ from ..field.config import LEGACY_PRESET
 from ..imageio_utils import new_entries, remove_new
 from ..planners import make_planner
 from ..planners.base import is_planner_file, planner_label
+from ..record import json_default, read_record
 from ..travel import TRAVEL_SETTINGS
-from .record import json_default, read_record
 
 
 def resume_obstacles(rec: dict, current: dict, content_hash, planner_digest, cameras=None) -> dict:

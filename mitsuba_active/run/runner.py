@@ -39,14 +39,14 @@ from ..metrics import DECIMALS, fixed
 from ..planners import PlanningState, make_planner
 from ..planners.base import planner_digest, planner_label, planner_rng, unseen
 from ..protocol import evaluate_views, new_field
+from ..record import ALONG_THE_WAY, CONTINUOUS, RUN_FORMAT, along_the_way_views, json_default
 from ..report import contact_sheet, plot_metrics, plot_views
-from ..rigs import snapped_up
 from ..training import evaluation_note, has_distances, predict_view, scores_line, sparse_candidate_rays, train_on
 from ..travel import Journey, diameter_of, stops_along
 from ..travelplots import plot_travel
+from ..upright import snapped_up
 from ..webpage import REPORT_FILE, write_run_page
 from .config import RunConfig, source_field_config
-from .record import ALONG_THE_WAY, CONTINUOUS, RUN_FORMAT, along_the_way_views, json_default
 from .resume import ends_short_of_a_batch, read_resumable_record, resume_obstacles, other_settings
 
 

@@ -21,7 +21,7 @@ import numpy as np
 from ..cameras import Camera
 from ..checks import not_a_file
 from ..errors import UserError, brief
-from ..rigs import snapped_up
+from ..upright import snapped_up
 from ..variant import require_variant
 from .meshes import MESH_SUFFIXES
 from .probes import classify, first_hits

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cameras import Camera
-from ..checks import is_number, is_whole
-from ..errors import UserError
+from .cameras import Camera
+from .checks import is_number, is_whole
+from .errors import UserError
 
 RUN_FORMAT = 1
 

@@ -15,7 +15,8 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_active.field import Ensemble, FieldConfig
-from mitsuba_active.field.grid import GridLayout, accumulate, query
+from mitsuba_active.field.grid import GridLayout, accumulate, half_table, query
+from mitsuba_active.field.render import render_members
 
 from .test_field import BOX, views
 
@@ -196,3 +197,53 @@ def test_annealing_masks_the_fine_levels_early_and_not_later():
     assert ens.params().layout.weights is None
     late = np.array(query(mi.Float(table.ravel()), ens.params().layout, 1, u, 0))
     assert np.abs(late - early).max() > 1e-3
+
+
+def test_half_lookups_match_the_numpy_reference_to_float16_precision():
+    """Lookups of a table's float16 copy sum the rounded features in float32:
+    within float16's rounding of the reference, and not the float32 sums."""
+    K = 3
+    layout = GridLayout.from_config(HASHED)
+    table = random_table(layout, K)
+    u = np.random.default_rng(1).uniform(0.0, 1.0, (200, 3))
+    half = half_table(mi.Float(table.ravel()))
+    assert dr.type_v(half) == dr.VarType.Float16
+    got = query(half, layout, K, mi.Point3f(u.T.astype(np.float32)))
+    ref = reference_query(table, layout, u)
+    rounded = reference_query(table.astype(np.float16).astype(np.float32), layout, u)
+    for k in range(K):
+        np.testing.assert_allclose(np.array(got[k]).T, rounded[k], rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(np.array(got[k]).T, ref[k], atol=5e-3)
+    assert np.abs(np.array(got[0]).T - ref[0]).max() > 1e-6  # it did read the rounded copy
+    member = np.arange(200) % K
+    one = np.array(query(half, layout, K, mi.Point3f(u.T.astype(np.float32)), mi.UInt32(member))).T
+    np.testing.assert_allclose(one, rounded[member, np.arange(200)], rtol=1e-5, atol=1e-5)
+
+
+def test_an_ensemble_looks_up_the_float16_copy_of_its_current_table():
+    """Each Adam step writes the lookups' float16 copy of the new table; a table
+    put in its place (as finite differences do) is looked up as it is, and
+    lookups that trace derivatives read the float32 table."""
+    rays = views([[0.0, 0.3, 2.2], [2.2, 0.3, 0.0]], width=8, height=8)
+    cfg = dataclasses.replace(HASHED, batch_rays=64)
+    ens = Ensemble(*BOX, n_members=2, config=cfg, seed=0)
+    ens.set_rays(*rays)
+    for _ in range(2):
+        ens.train(1)
+        params = ens.params()
+        assert params.lookup_table() is params.grid  # the step's own lookups differentiate it
+        with dr.suspend_grad():
+            table = params.lookup_table()
+            assert dr.type_v(table) == dr.VarType.Float16
+            np.testing.assert_array_equal(np.array(table, np.float32),
+                                          np.array(params.grid, np.float32).astype(np.float16).astype(np.float32))
+            params.grid = mi.Float(np.array(params.grid))
+            assert params.lookup_table() is params.grid
+    # Rendered with float32 lookups instead, the colours differ by float16's rounding of the features.
+    o, d = mi.Point3f(rays[0][::7].T), mi.Vector3f(rays[1][::7].T)
+    with dr.suspend_grad():
+        params = ens.params()
+        half = [np.array(out["rgb"]) for out in render_members(params, o, d)]
+        full = [np.array(out["rgb"]) for out in render_members(dataclasses.replace(params, half_grid=None), o, d)]
+    np.testing.assert_allclose(half, full, atol=2e-3)
+    assert np.abs(np.subtract(half, full)).max() > 0

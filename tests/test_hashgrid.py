@@ -276,7 +276,7 @@ def test_gradients_added_level_group_by_group_match_the_fused_march(monkeypatch,
 
     layout = GridLayout.from_config(ens.config)
     monkeypatch.setattr(grid, "SCATTER_GROUP_BYTES", 16)
-    assert grid.level_groups(layout, K) == [range(0, 1), range(1, 2), range(2, 3)]
+    assert grid.level_groups(layout, 16 * K) == [range(0, 1), range(1, 2), range(2, 3)]
     grouped, fused = gradient(16), gradient(1 << 30)
     np.testing.assert_allclose(grouped, fused, rtol=1e-5, atol=1e-7)
     per_level = [np.abs(grouped[4 * K * off:4 * K * (off + size)]).sum() for off, size in zip(layout.offsets, layout.sizes)]
@@ -287,10 +287,31 @@ def test_dense_layouts_and_small_tables_keep_one_level_group():
     from mitsuba_active.field.grid import level_groups
 
     dense = GridLayout.from_config(FieldConfig(n_levels=2))
-    assert level_groups(dense, 64) == [range(0, 2)]
+    assert level_groups(dense, 64 * 16) == [range(0, 2)]
     hashed = GridLayout.from_config(FieldConfig(n_levels=12, base_resolution=16, per_level_scale=1.2,
                                                 log2_table_size=15))
-    groups = level_groups(hashed, 1)
+    groups = level_groups(hashed, 16)
     assert 1 < len(groups) < 12 and [lv for g in groups for lv in g] == list(range(12))
-    assert len(level_groups(hashed, 4)) > len(groups)
-    assert level_groups(GridLayout.from_config(HASHED), 1) == [range(0, 3)]
+    assert len(level_groups(hashed, 64)) > len(groups)
+    assert level_groups(GridLayout.from_config(HASHED), 16) == [range(0, 3)]
+
+
+def test_half_lookups_level_group_by_level_group_match_the_reference(monkeypatch):
+    """Lookups of a table too large for one level group sum each group's levels
+    in lanes of their own and add the partial sums: the same features."""
+    from mitsuba_active.field import grid
+
+    K = 2
+    layout = GridLayout.from_config(dataclasses.replace(HASHED, n_levels=4))
+    table = random_table(layout, K)
+    u = np.random.default_rng(5).uniform(-0.05, 1.05, (100, 3))
+    active = np.arange(100) % 7 != 3
+    monkeypatch.setattr(grid, "LOOKUP_GROUP_BYTES", 16)
+    # At most half as many groups as levels.
+    assert grid.level_groups(layout, 8 * K, grid.LOOKUP_GROUP_BYTES, 2) == [range(0, 2), range(2, 4)]
+    got = query(half_table(mi.Float(table.ravel())), layout, K, mi.Point3f(u.T.astype(np.float32)), None,
+                mi.Bool(active))
+    rounded = reference_query(table.astype(np.float16).astype(np.float32), layout, u)
+    for k in range(K):
+        np.testing.assert_allclose(np.array(got[k]).T, np.where(active[:, None], rounded[k], 0.0),
+                                   rtol=1e-5, atol=1e-5)

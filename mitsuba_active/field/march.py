@@ -16,7 +16,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .grid import accumulate, level_groups, query
+from .grid import N_CHANNELS, accumulate, group_lanes, level_groups, query
 
 
 def _raw_to_field(raw, valid, density_bias: float, inv_diag: float):
@@ -268,7 +268,7 @@ class _MarchedGrid(_MarchedComposite):
     def eval(self, grid, raws, lookup, t, delta, valid, S, density_bias, inv_diag, reg=None):
         # lookup: (layout, n_members, u, member, active), the arguments the features were queried with.
         self.grid_width, self.lookup = dr.width(grid), lookup
-        self.groups = level_groups(lookup[0], lookup[1])
+        self.groups = level_groups(lookup[0], 4 * N_CHANNELS * lookup[1])
         return super().eval(raws, t, delta, valid, S, density_bias, inv_diag, reg)
 
     def _write_gradients(self, j, grads, valid):
@@ -283,17 +283,7 @@ class _MarchedGrid(_MarchedComposite):
         """Add the stored gradients of every ray's samples to their corners,
         one lane per ray and level group (see the class docstring)."""
         layout, n_members, u, member, _ = self.lookup
-        R, G = dr.width(self.first), len(self.groups)
-        # The rays in one chunk per thread, each chunk's lanes group after group, so that
-        # every thread walks every group, in whole SIMD packets (of at most 16 lanes).
-        chunks = max(1, dr.thread_count())
-        per_chunk = -(-R // (chunks * 16)) * 16
-        lane = dr.arange(mi.UInt32, chunks * G * per_chunk)
-        chunk = lane // (G * per_chunk)
-        group = lane // per_chunk - chunk * G
-        ray = chunk * per_chunk + lane % per_chunk
-        real = ray < R
-        ray = dr.minimum(ray, R - 1)
+        ray, group, real = group_lanes(dr.width(self.first), len(self.groups))
         first = dr.gather(mi.UInt32, self.first, ray)
         valid = dr.gather(mi.Bool, self.valid, ray) & real
         per_sample = member is not None and dr.width(member) > 1

@@ -53,7 +53,7 @@ def lookup_samples(params: FieldParams, s: dict, member=None):
     u = dr.gather(mi.Point3f, s["u"], ids)
     if member is not None and not isinstance(member, int) and dr.width(member) > 1:
         member = dr.gather(mi.UInt32, member, ids)
-    raw = query(table, params.layout, params.n_members, u, member, True)
+    raw = query(table, params.layout, params.n_members, u, member, True, by_groups=False)
 
     def expand(r):
         full = dr.zeros(mi.Vector4f, n)

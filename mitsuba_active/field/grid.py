@@ -15,7 +15,9 @@ spatial hash ``(x * 1) ^ (y * 2654435761) ^ (z * 805459861) mod T``.
 Lookups may read a float16 copy of the table (:func:`half_table`, the
 mixed precision of Instant-NGP): a corner's packet gather then moves half
 the bytes and costs about half the instructions on the CPU, while the
-gradients and the optimiser's parameters stay float32.
+gradients and the optimiser's parameters stay float32. A table of hashed
+levels too large for the caches is read, and its gradients added, level
+group by level group (:func:`level_groups`, :func:`group_lanes`).
 """
 
 from __future__ import annotations

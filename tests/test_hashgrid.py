@@ -15,9 +15,10 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_active.field import Ensemble, FieldConfig
-from mitsuba_active.field.grid import GridLayout, accumulate, query
+from mitsuba_active.field.grid import GridLayout, accumulate, half_table, query
+from mitsuba_active.field.render import render_flat, render_members
 
-from .test_field import BOX, views
+from .test_field import BOX, camera_rays, views
 
 #: Three levels (2, 4, 8 cells): the first dense (27 vertices), the others hashed into 32 entries.
 HASHED = FieldConfig(n_levels=3, base_resolution=2, per_level_scale=2.0, log2_table_size=5, n_samples=16,
@@ -196,3 +197,121 @@ def test_annealing_masks_the_fine_levels_early_and_not_later():
     assert ens.params().layout.weights is None
     late = np.array(query(mi.Float(table.ravel()), ens.params().layout, 1, u, 0))
     assert np.abs(late - early).max() > 1e-3
+
+
+def test_half_lookups_match_the_numpy_reference_to_float16_precision():
+    """Lookups of a table's float16 copy sum the rounded features in float32:
+    within float16's rounding of the reference, and not the float32 sums."""
+    K = 3
+    layout = GridLayout.from_config(HASHED)
+    table = random_table(layout, K)
+    u = np.random.default_rng(1).uniform(0.0, 1.0, (200, 3))
+    half = half_table(mi.Float(table.ravel()))
+    assert dr.type_v(half) == dr.VarType.Float16
+    got = query(half, layout, K, mi.Point3f(u.T.astype(np.float32)))
+    ref = reference_query(table, layout, u)
+    rounded = reference_query(table.astype(np.float16).astype(np.float32), layout, u)
+    for k in range(K):
+        np.testing.assert_allclose(np.array(got[k]).T, rounded[k], rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(np.array(got[k]).T, ref[k], atol=5e-3)
+    assert np.abs(np.array(got[0]).T - ref[0]).max() > 1e-6  # it did read the rounded copy
+    member = np.arange(200) % K
+    one = np.array(query(half, layout, K, mi.Point3f(u.T.astype(np.float32)), mi.UInt32(member))).T
+    np.testing.assert_allclose(one, rounded[member, np.arange(200)], rtol=1e-5, atol=1e-5)
+
+
+def test_an_ensemble_looks_up_the_float16_copy_of_its_current_table():
+    """Each Adam step writes the lookups' float16 copy of the new table; a table
+    put in its place (as finite differences do) is looked up as it is, and
+    lookups that trace derivatives read the float32 table."""
+    rays = views([[0.0, 0.3, 2.2], [2.2, 0.3, 0.0]], width=8, height=8)
+    cfg = dataclasses.replace(HASHED, batch_rays=64)
+    ens = Ensemble(*BOX, n_members=2, config=cfg, seed=0)
+    ens.set_rays(*rays)
+    for _ in range(2):
+        ens.train(1)
+        params = ens.params()
+        assert params.lookup_table() is params.grid  # the step's own lookups differentiate it
+        with dr.suspend_grad():
+            table = params.lookup_table()
+            assert dr.type_v(table) == dr.VarType.Float16
+            np.testing.assert_array_equal(np.array(table, np.float32),
+                                          np.array(params.grid, np.float32).astype(np.float16).astype(np.float32))
+            params.grid = mi.Float(np.array(params.grid))
+            assert params.lookup_table() is params.grid
+    # Rendered with float32 lookups instead, the colours differ by float16's rounding of the features.
+    o, d = mi.Point3f(rays[0][::7].T), mi.Vector3f(rays[1][::7].T)
+    with dr.suspend_grad():
+        params = ens.params()
+        half = [np.array(out["rgb"]) for out in render_members(params, o, d)]
+        full = [np.array(out["rgb"]) for out in render_members(dataclasses.replace(params, half_grid=None), o, d)]
+    np.testing.assert_allclose(half, full, atol=2e-3)
+    assert np.abs(np.subtract(half, full)).max() > 0
+
+
+@pytest.mark.parametrize("members", ["per ray", "all"])
+def test_gradients_added_level_group_by_group_match_the_fused_march(monkeypatch, members):
+    """A table too large for one level group gets its gradients after the march,
+    group by group: the same gradients as the march adding them itself."""
+    from mitsuba_active.field import grid
+
+    K, S = 3, 8
+    ens = Ensemble(*BOX, n_members=K, config=dataclasses.replace(HASHED, n_samples=S), seed=3)
+    o, d = camera_rays([0.3, 0.4, 2.5], width=6, height=6)
+    member = np.random.default_rng(1).integers(0, K, len(o)).astype(np.uint32)
+    jitter = mi.Float(np.random.default_rng(2).uniform(size=len(o) * S).astype(np.float32))
+    table = np.array(ens.params().grid)
+
+    def gradient(budget):
+        monkeypatch.setattr(grid, "SCATTER_GROUP_BYTES", budget)
+        params = ens.params()
+        params.grid = mi.Float(table)
+        dr.enable_grad(params.grid)
+        args = (params, mi.Point3f(o.T), mi.Vector3f(d.T))
+        outs = ([render_flat(*args, mi.UInt32(member), jitter=jitter)] if members == "per ray"
+                else render_members(*args, jitter=jitter))
+        loss = sum((k + 1) * (dr.sum(dr.sum(out["rgb"])) + 0.3 * dr.sum(out["distance"])) for k, out in enumerate(outs))
+        dr.backward(loss)
+        return np.array(dr.grad(params.grid))
+
+    layout = GridLayout.from_config(ens.config)
+    monkeypatch.setattr(grid, "SCATTER_GROUP_BYTES", 16)
+    assert grid.level_groups(layout, 16 * K) == [range(0, 1), range(1, 2), range(2, 3)]
+    grouped, fused = gradient(16), gradient(1 << 30)
+    np.testing.assert_allclose(grouped, fused, rtol=1e-5, atol=1e-7)
+    per_level = [np.abs(grouped[4 * K * off:4 * K * (off + size)]).sum() for off, size in zip(layout.offsets, layout.sizes)]
+    assert min(per_level) > 0  # every group's levels got gradients
+
+
+def test_dense_layouts_and_small_tables_keep_one_level_group():
+    from mitsuba_active.field.grid import level_groups
+
+    dense = GridLayout.from_config(FieldConfig(n_levels=2))
+    assert level_groups(dense, 64 * 16) == [range(0, 2)]
+    hashed = GridLayout.from_config(FieldConfig(n_levels=12, base_resolution=16, per_level_scale=1.2,
+                                                log2_table_size=15))
+    groups = level_groups(hashed, 16)
+    assert 1 < len(groups) < 12 and [lv for g in groups for lv in g] == list(range(12))
+    assert len(level_groups(hashed, 64)) > len(groups)
+    assert level_groups(GridLayout.from_config(HASHED), 16) == [range(0, 3)]
+
+
+def test_half_lookups_level_group_by_level_group_match_the_reference(monkeypatch):
+    """Lookups of a table too large for one level group sum each group's levels
+    in lanes of their own and add the partial sums: the same features."""
+    from mitsuba_active.field import grid
+
+    K = 2
+    layout = GridLayout.from_config(dataclasses.replace(HASHED, n_levels=4))
+    table = random_table(layout, K)
+    u = np.random.default_rng(5).uniform(-0.05, 1.05, (100, 3))
+    active = np.arange(100) % 7 != 3
+    monkeypatch.setattr(grid, "LOOKUP_GROUP_BYTES", 16)
+    # At most half as many groups as levels.
+    assert grid.level_groups(layout, 8 * K, grid.LOOKUP_GROUP_BYTES, 2) == [range(0, 2), range(2, 4)]
+    got = query(half_table(mi.Float(table.ravel())), layout, K, mi.Point3f(u.T.astype(np.float32)), None,
+                mi.Bool(active))
+    rounded = reference_query(table.astype(np.float16).astype(np.float32), layout, u)
+    for k in range(K):
+        np.testing.assert_allclose(np.array(got[k]).T, np.where(active[:, None], rounded[k], 0.0),
+                                   rtol=1e-5, atol=1e-5)

@@ -30,7 +30,7 @@ from .batch import ray_order, stratified_indices
 from .bootstrap import BOOTSTRAP_KINDS, bootstrap_weights, weighted
 from .config import MAX_MEMBERS, MAX_STEPS, FieldConfig
 from .fisher import fisher_diagonal
-from .grid import GridLayout, anneal_weights, init_grid
+from .grid import GridLayout, anneal_weights, half_table, init_grid
 from .inputs import checked_rays, point, triples
 from .io import load_ensemble, save_ensemble
 from .occupancy import DECAY, cell_opacity
@@ -138,6 +138,7 @@ class Ensemble:
         cfg = self.config
         self._opt = dr.opt.Adam(lr=cfg.lr, beta_1=cfg.beta_1, beta_2=cfg.beta_2,
                                 epsilon=cfg.epsilon)
+        self._half = None  # (grid table, its float16 copy), see _half_grid
         # (K, E, 4) member-major on the host -> (E, K, 4) interleaved table.
         table = np.ascontiguousarray(np.transpose(np.asarray(grid, np.float32), (1, 0, 2)))
         self._opt["grid"] = mi.Float(table.ravel())
@@ -178,7 +179,20 @@ class Ensemble:
                            contraction=float(cfg.contraction),
                            near=float(cfg.near) * float(np.linalg.norm(np.subtract(self.box_max, self.box_min))),
                            sky=self._opt["sky"] if cfg.background_resolution > 0 else None,
-                           sky_resolution=int(cfg.background_resolution))
+                           sky_resolution=int(cfg.background_resolution),
+                           half_grid=self._half_grid(), half_of=self._opt["grid"])
+
+    def _half_grid(self, evaluate: bool = True):
+        """The grid table's float16 copy that the lookups read (``half_lookups``),
+        made once per value of the table, or None (they read the table)."""
+        if not self.config.half_lookups:
+            return None
+        grid = self._opt["grid"]
+        if self._half is None or self._half[0] is not grid:
+            self._half = (grid, half_table(grid))
+            if evaluate:
+                dr.eval(self._half[1])
+        return self._half[1]
 
     def _annealed_layout(self) -> GridLayout:
         """The layout with the levels' annealing weights (:func:`.grid.anneal_weights`) as opaque
@@ -454,7 +468,10 @@ class Ensemble:
         """Apply one Adam update from the accumulated gradients (and refresh
         the occupancy grid when one is due)."""
         self._check_variant()
-        self._opt.step()
+        self._opt.step(eval=False)
+        # The lookups' float16 copy is written by the update's own kernel.
+        dr.schedule(self._half_grid(evaluate=False))
+        dr.eval()
         self._step += 1
         cfg = self.config
         if cfg.occupancy_resolution > 0:

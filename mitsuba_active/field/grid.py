@@ -11,6 +11,13 @@ one (see :mod:`mitsuba_active.field.march`).
 Coarse levels are dense (vertex ``(x, y, z)`` at ``x + y*(r+1) + z*(r+1)**2``);
 levels with more vertices than ``2**log2_table_size`` use the Instant-NGP
 spatial hash ``(x * 1) ^ (y * 2654435761) ^ (z * 805459861) mod T``.
+
+Lookups may read a float16 copy of the table (:func:`half_table`, the
+mixed precision of Instant-NGP): a corner's packet gather then moves half
+the bytes and costs about half the instructions on the CPU, while the
+gradients and the optimiser's parameters stay float32. A table of hashed
+levels too large for the caches is read, and its gradients added, level
+group by level group (:func:`level_groups`, :func:`group_lanes`).
 """
 
 from __future__ import annotations
@@ -25,6 +32,18 @@ from .config import FieldConfig
 
 #: Channels per vertex: density logit + RGB logits.
 N_CHANNELS = 4
+
+#: Most bytes of the float32 table whose gradients one group of
+#: :func:`level_groups` receives at a time: about what a core's L2 cache
+#: (1 MiB on the 2-core machine) keeps of it between a ray's samples. On the
+#: 12-level ``default`` grid at 200 px (5 MiB a member) groups of 1.25 MiB
+#: (K=1) and 1.7 MiB (K=4) measured best, 5 MiB (one group) worst.
+SCATTER_GROUP_BYTES = 3 << 19
+#: The same for the lookups' reads of the float16 table (2.5 MiB a member
+#: there), in at most half as many groups as levels: each lane also writes
+#: its group's K*4 partial sums. Measured there: K=1 best in 3 groups (2 and
+#: 6 a few % dearer), K=4 in 4 to 6 (12 groups 9 % dearer).
+LOOKUP_GROUP_BYTES = 1 << 20
 
 _PRIMES = (1, 2654435761, 805459861)
 
@@ -104,12 +123,58 @@ def reduce_mode():
     return dr.ReduceMode.Auto
 
 
-def corners(layout: GridLayout, u):
+def level_groups(layout: GridLayout, entry_bytes: int, budget: int = None, most: int = None) -> list:
+    """The levels in equal groups of consecutive ones (a list of ``range``):
+    for a layout with hashed levels, as few groups as keep each one's share
+    of a table of ``entry_bytes`` an entry within ``budget`` (default
+    :data:`SCATTER_GROUP_BYTES`), or ``most`` groups (default: one a
+    level) where that takes more; else one group of all.
+
+    A pass that reads or adds to the table group after group keeps its
+    random accesses within that share, which the caches hold (see
+    :func:`group_lanes`). Dense levels alone gain nothing from it (the
+    ``fast`` preset's two levels with K=4 took 9 % more CPU time in two
+    groups than in one).
+    """
+    L = len(layout.resolutions)
+    if all(layout.dense):
+        return [range(L)]
+    budget = SCATTER_GROUP_BYTES if budget is None else int(budget)
+    wanted = min(-(-layout.n_entries * int(entry_bytes) // budget), L if most is None else int(most))
+    n = next(d for d in range(1, L + 1) if L % d == 0 and d >= min(wanted, L))
+    return [range(g * L // n, (g + 1) * L // n) for g in range(n)]
+
+
+def group_lanes(n: int, n_groups: int):
+    """Lanes for ``n`` items (rays or samples) in ``n_groups`` level groups:
+    one chunk of the items per thread, each chunk's lanes group after group,
+    in whole SIMD packets (of at most 16 lanes), so that every thread walks
+    every group and a group's lanes come one after another.
+
+    Returns:
+        (item ``mi.UInt32``, group ``mi.UInt32``, real ``mi.Bool``) per lane:
+        the item (clamped to ``n - 1`` in the padding, where ``real`` is
+        False) and its group.
+    """
+    chunks = max(1, dr.thread_count())
+    lanes = chunks * n_groups * (-(-int(n) // (chunks * 16)) * 16)
+    # Opaque: counts that change from call to call (skipping's samples) reuse the kernels.
+    per_chunk, last = dr.opaque(mi.UInt32, lanes // (chunks * n_groups)), dr.opaque(mi.UInt32, int(n) - 1)
+    lane = dr.arange(mi.UInt32, lanes)
+    chunk = lane // (n_groups * per_chunk)
+    group = lane // per_chunk - chunk * n_groups
+    item = chunk * per_chunk + lane % per_chunk
+    return dr.minimum(item, last), group, item <= last
+
+
+def corners(layout: GridLayout, u, levels=None):
     """Yield (level, table entry index, trilinear weight) for the 8 corners
-    of every level around normalised positions ``u`` (``mi.Point3f``), the
-    weights scaled by ``layout.weights`` where given."""
+    of every level (or of those in ``levels``) around normalised positions
+    ``u`` (``mi.Point3f``), the weights scaled by ``layout.weights`` where given."""
     x_unit = dr.clip(mi.Vector3f(u), 0.0, 1.0)
     for level, r in enumerate(layout.resolutions):
+        if levels is not None and level not in levels:
+            continue
         x = x_unit * float(r)
         # Cell index clamped to r-1 so that corner x0+1 <= r stays in the grid.
         x0f = dr.minimum(dr.floor(x), float(r - 1))
@@ -134,7 +199,13 @@ def corners(layout: GridLayout, u):
             yield level, idx + layout.offsets[level], w
 
 
-def query(grid, layout: GridLayout, n_members: int, u, member=None, active=True):
+def half_table(grid):
+    """A float16 copy (``Float16`` of the same backend, no derivatives) of
+    a table ``grid`` (``mi.Float``) for :func:`query` to read."""
+    return dr.float16_array_t(mi.Float)(dr.detach(grid))
+
+
+def query(grid, layout: GridLayout, n_members: int, u, member=None, active=True, by_groups=True):
     """Summed trilinear grid features at positions ``u`` of the unit cube.
 
     The table is member-interleaved: entry ``e`` of member ``k`` occupies
@@ -144,12 +215,17 @@ def query(grid, layout: GridLayout, n_members: int, u, member=None, active=True)
     costs little more than a single-member one.
 
     Args:
-        grid: ``mi.Float`` table of ``n_entries * K * 4`` values.
+        grid: ``mi.Float`` table of ``n_entries * K * 4`` values, or its
+           float16 copy (:func:`half_table`; the sums are float32 alike).
         layout: :class:`GridLayout`; n_members: K.
         u: ``mi.Point3f`` positions in ``[0, 1]^3`` (box-normalised; values
            outside are clamped to the border cells).
         member: None for all members, or an int / ``mi.UInt32`` per point.
         active: mask; inactive lanes read nothing and return 0.
+        by_groups: a float16 table of :func:`level_groups` is read group by
+           group (:func:`_query_by_groups`); False: in one lane per point,
+           for counts that change from call to call (empty-space skipping's
+           samples), whose grouped kernel Dr.Jit would compile anew each time.
 
     Returns:
         ``mi.Vector4f`` raw (density logit, r, g, b logits) summed over
@@ -157,26 +233,76 @@ def query(grid, layout: GridLayout, n_members: int, u, member=None, active=True)
     """
     K = int(n_members)
     mode = reduce_mode()
+    half = dr.type_v(grid) == dr.VarType.Float16
+    if member is None and half and by_groups:
+        groups = level_groups(layout, 2 * N_CHANNELS * K, LOOKUP_GROUP_BYTES, len(layout.resolutions) // 2)
+        if len(groups) > 1:
+            return _query_by_groups(grid, layout, K, u, active, groups)
     if member is None:
         XF = type(mi.ArrayXf())
+        packet = dr.float16_array_t(XF) if half else XF
         acc = [[mi.Float(0.0)] * N_CHANNELS for _ in range(K)]
         for _, idx, w in corners(layout, u):
             # One K*4-wide packet gather per corner (index in units of K*4).
-            v = dr.gather(XF, grid, idx, active, mode=mode, shape=(K * N_CHANNELS, dr.width(idx)))
+            v = dr.gather(packet, grid, idx, active, mode=mode, shape=(K * N_CHANNELS, dr.width(idx)))
             for k in range(K):
                 for ch in range(N_CHANNELS):
-                    acc[k][ch] = dr.fma(v[k * N_CHANNELS + ch], w, acc[k][ch])
+                    acc[k][ch] = dr.fma(mi.Float(v[k * N_CHANNELS + ch]), w, acc[k][ch])
         return [mi.Vector4f(*a) for a in acc]
     mem = mi.UInt32(member)
     acc = [mi.Float(0.0)] * N_CHANNELS
+    packet = dr.float16_array_t(mi.Vector4f) if half else mi.Vector4f
     for _, idx, w in corners(layout, u):
-        v = dr.gather(mi.Vector4f, grid, idx * K + mem, active, mode=mode)
+        v = dr.gather(packet, grid, idx * K + mem, active, mode=mode)
         for ch in range(N_CHANNELS):
-            acc[ch] = dr.fma(v[ch], w, acc[ch])
+            acc[ch] = dr.fma(mi.Float(v[ch]), w, acc[ch])
     return mi.Vector4f(*acc)
 
 
-def accumulate(table, layout: GridLayout, n_members: int, u, values, member=None, active=True):
+def _query_by_groups(grid, layout: GridLayout, K: int, u, active, groups):
+    """:func:`query` of every member from a float16 table, one lane per
+    point and level group (:func:`group_lanes`): each lane sums its group's
+    levels into a buffer of partial sums, which the result adds up."""
+    n = max(dr.width(u), dr.width(active))
+    item, group, real = group_lanes(n, len(groups))
+    u = dr.gather(mi.Point3f, mi.Point3f(u), item)
+    active = dr.gather(mi.Bool, mi.Bool(active) & dr.full(mi.Bool, True, n), item) & real
+    XF = type(mi.ArrayXf())
+    C = K * N_CHANNELS
+
+    def partial(levels):
+        def f(u, active):
+            acc = None
+            for _, idx, w in corners(layout, u, levels):
+                v = XF(dr.gather(dr.float16_array_t(XF), grid, idx, active, shape=(C, dr.width(idx))))
+                acc = v * w if acc is None else dr.fma(v, w, acc)
+            return tuple(acc[c] for c in range(C))
+        return f
+
+    def nothing(u, active):
+        return tuple(dr.zeros(mi.Float, dr.width(active)) for _ in range(C))
+
+    sums = [mi.Float(0.0)] * C
+    for index, levels in enumerate(groups):
+        # A group's lanes are whole SIMD packets: the others skip its corners.
+        part = dr.if_stmt((u, active), group == index, partial(levels), nothing)
+        sums = [a + b for a, b in zip(sums, part)]
+    lanes = dr.width(item)
+    buffer = dr.empty(mi.Float, lanes * C)
+    dr.scatter(buffer, XF(*sums), dr.arange(mi.UInt32, lanes))
+    # Point i's partial sums: lane i of its chunk in each group.
+    chunk_lanes = dr.opaque(mi.UInt32, lanes // (len(groups) * max(1, dr.thread_count())))
+    i = dr.arange(mi.UInt32, n)
+    chunk = i // chunk_lanes
+    total = None
+    for index in range(len(groups)):
+        p = dr.gather(XF, buffer, (chunk * len(groups) + index) * chunk_lanes + (i - chunk * chunk_lanes),
+                      shape=(C, n))
+        total = p if total is None else total + p
+    return [mi.Vector4f(*[total[k * N_CHANNELS + ch] for ch in range(N_CHANNELS)]) for k in range(K)]
+
+
+def accumulate(table, layout: GridLayout, n_members: int, u, values, member=None, active=True, levels=None):
     """Add ``values`` at positions ``u`` to ``table``, spread over the grid
     corners with the trilinear weights: the adjoint of :func:`query` (its
     gradient with respect to the table), in the same layout.
@@ -186,12 +312,13 @@ def accumulate(table, layout: GridLayout, n_members: int, u, values, member=None
         values: ``K*4`` ``mi.Float`` (every member's 4, member after member)
             when ``member`` is None, else 4 (that member's).
         layout, n_members, u, member, active: as for :func:`query`.
+        levels: None (every level), or the levels to add to (a ``range``).
     """
     K = int(n_members)
     mode = reduce_mode()
     XF = type(mi.ArrayXf())
     mem = None if member is None else mi.UInt32(member)
-    for _, idx, w in corners(layout, u):
+    for _, idx, w in corners(layout, u, levels):
         if mem is None:  # one K*4-wide packet per corner, as query gathers it
             dr.scatter_add(table, XF(*[v * w for v in values]), idx, active, mode=mode)
         else:

@@ -63,7 +63,7 @@ def cell_opacity(params, resolution: int, key):
         step = params.diag / float(params.n_samples // 2) * contracted_stretch(u)
     best = mi.Float(0.0)
     with dr.suspend_grad():
-        for raw in query(params.grid, params.layout, params.n_members, u, None, True):
+        for raw in query(params.lookup_table(), params.layout, params.n_members, u, None, True):
             sigma, _ = field_at(params, u, None, True, raw=raw)
             best = dr.maximum(best, sigma * step)
     return best

@@ -40,8 +40,9 @@ def lookup_samples(params: FieldParams, s: dict, member=None):
         member: None (all members: returns a list of K ``mi.Vector4f``),
             an int, or a per-sample ``mi.UInt32``.
     """
+    table = params.lookup_table()
     if params.occupancy is None:
-        return query(params.grid, params.layout, params.n_members, s["u"], member, s["valid"])
+        return query(table, params.layout, params.n_members, s["u"], member, s["valid"])
     s["valid"] = s["valid"] & occupied(params.occupancy, params.occupancy_resolution, s["u"])
     n = dr.width(s["valid"])
     ids = dr.compress(s["valid"])
@@ -52,7 +53,7 @@ def lookup_samples(params: FieldParams, s: dict, member=None):
     u = dr.gather(mi.Point3f, s["u"], ids)
     if member is not None and not isinstance(member, int) and dr.width(member) > 1:
         member = dr.gather(mi.UInt32, member, ids)
-    raw = query(params.grid, params.layout, params.n_members, u, member, True)
+    raw = query(table, params.layout, params.n_members, u, member, True, by_groups=False)
 
     def expand(r):
         full = dr.zeros(mi.Vector4f, n)

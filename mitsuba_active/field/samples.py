@@ -47,6 +47,10 @@ class FieldParams:
         sky: ``mi.Float`` table of the directional background (see
             :mod:`.sky`), or None (one colour per member).
         sky_resolution: its rows (``FieldConfig.background_resolution``).
+        half_grid, half_of: a float16 copy (:func:`.grid.half_table`) of the
+            table ``half_of``, or None; the lookups read it while ``grid``
+            is that table (one that replaces ``grid`` is read as it is)
+            and no derivatives of it are traced (see :meth:`lookup_table`).
     """
 
     grid: object
@@ -66,6 +70,15 @@ class FieldParams:
     near: float = 0.0
     sky: object = None
     sky_resolution: int = 0
+    half_grid: object = None
+    half_of: object = None
+
+    def lookup_table(self):
+        """The table the grid lookups read: ``half_grid`` where it copies
+        ``grid`` and no derivatives of ``grid`` are traced, else ``grid``."""
+        if self.half_grid is None or self.half_of is not self.grid or dr.grad_enabled(self.grid):
+            return self.grid
+        return self.half_grid
 
     @property
     def diag(self) -> float:
@@ -244,6 +257,6 @@ def field_at(params: FieldParams, u, member, active=True, raw=None):
     the caller already evaluated it.
     """
     if raw is None:
-        raw = query(params.grid, params.layout, params.n_members, u, member, active)
+        raw = query(params.lookup_table(), params.layout, params.n_members, u, member, active)
     sigma, rgb, _ = _raw_to_field(raw, mi.Bool(active), params.density_bias, 1.0 / params.diag)
     return sigma, rgb

@@ -111,6 +111,10 @@ class VariationalField(Ensemble):
         grid[1] = 0.0  # scale logits: every point starts at std = max_std / 2
         return grid
 
+    def _half_grid(self, evaluate: bool = True):
+        # Training differentiates the lookups themselves: renders read the same float32 table.
+        return None
+
     def options(self) -> dict:
         """The options beyond :class:`FieldConfig` (stored in saved files)."""
         return {"max_std": self.max_std, "entropy_weight": self.entropy_weight, "draws": self.draws}

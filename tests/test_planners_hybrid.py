@@ -7,7 +7,7 @@ from mitsuba_active.cameras import camera_rays
 from mitsuba_active.errors import UserError
 from mitsuba_active.planners import PlanningState, make_planner
 from mitsuba_active.planners.hybrid import project, unseen_angles
-from mitsuba_active.rigs import fibonacci_sphere
+from mitsuba_active.rigs import fibonacci_sphere, interior
 from mitsuba_active.run import sparse_candidate_rays
 
 CANDS = fibonacci_sphere(12, [0, 0, 0], 3.0, 40.0, 8, 8)
@@ -19,6 +19,7 @@ class Sphere:
     differ by ``var(points)`` at the surface points (N, 3)."""
 
     n_members = 2
+    bbox_min, bbox_max = np.full(3, -1.5), np.full(3, 1.5)
 
     def __init__(self, var):
         self.var = var
@@ -77,6 +78,33 @@ def test_hybrid_batches_count_their_own_picks_as_captured():
     assert len(set(picks)) == 3 and 0 not in picks
     # The second pick is not next to the first (its surface is seen from near by then).
     assert DIRS[picks[1]] @ DIRS[picks[0]] < max(DIRS[j] @ DIRS[picks[0]] for j in range(12) if j not in (0, picks[0]))
+
+
+class EmptyRoom:
+    """A stand-in ensemble that has found no surface yet in a room (the box)."""
+
+    n_members = 2
+    bbox_min, bbox_max = np.zeros(3), np.full(3, 4.0)
+
+    def predict(self, o, d):
+        n = len(o)
+        return dict(opacity=np.zeros(n, np.float32), distance_mean=np.zeros(n, np.float32),
+                    rgb_var=np.zeros((n, 3), np.float32))
+
+
+def test_hybrid_looks_where_no_camera_has_looked_when_no_surface_is_known_yet():
+    """Inside a room whose walls the ensemble has not found, rays count up to
+    the box: a view of walls no camera has seen beats one beside a captured view."""
+    room = EmptyRoom()
+    cams = interior(24, room.bbox_min, room.bbox_max, width=8, height=8)
+    fwd = np.stack([c.forward for c in cams])
+    first = int(np.argmax(fwd[:, 0]))
+    others = [i for i in range(len(cams)) if i != first]
+    beside = max(others, key=lambda i: fwd[i] @ fwd[first] - 0.1 * np.linalg.norm(cams[i].position - cams[first].position))
+    away = int(np.argmin(fwd @ fwd[first]))
+    rays = sparse_candidate_rays(cams, 32, 0)
+    _, scores = make_planner("hybrid").select(PlanningState(cams, [first], room, rays), 1)
+    assert scores[away] > 0.9 and scores[away] > scores[beside] + 0.2 and scores[first] < 0.05
 
 
 def test_hybrid_and_rfe_options_are_checked():

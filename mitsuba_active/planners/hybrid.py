@@ -2,16 +2,16 @@
 
 ``coverage`` spreads viewing directions; ``rfe`` chases the ensemble's
 disagreement. ``hybrid`` scores what a candidate would add to the captured
-views: for each of its sparse rays that meets a surface (the ensemble's mean
-opacity above ``min_opacity``), the hit point ``p`` (at the members' mean
-distance), and the angle at ``p`` between the candidate's centre and the
+views: for each of its sparse rays, the point ``p`` where it meets a surface
+(the ensemble's mean opacity above ``min_opacity``; at the members' mean
+distance) or, where it meets none yet, leaves the box, and the angle at ``p`` between the candidate's centre and the
 nearest captured camera that sees ``p`` (``p`` in its frustum, and no farther
 than the ensemble's distance along that camera's ray to it, plus
 ``DEPTH_TOLERANCE``, on a coarse depth map): pi where none sees it. A ray's
 worth is that angle's share of pi (raised to ``power``: 2 favours the largest
 gaps), times ``1 + disagreement * v / v_mean``, where ``v`` is the members'
 colour variance along the ray and ``v_mean`` its mean over all candidates'
-surface rays. A candidate's score is the mean worth of its R rays: new
+rays. A candidate's score is the mean worth of its R rays: new
 surface, or surface seen only from far, counts most where the members
 disagree about it. Batches are greedy: each pick counts as captured (with
 the ensemble's depths) when the next is scored.
@@ -42,6 +42,18 @@ def project(camera, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ui = np.clip(np.where(inside, u, 0), 0, camera.width - 1).astype(np.int64)
     vi = np.clip(np.where(inside, v, 0), 0, camera.height - 1).astype(np.int64)
     return vi * camera.width + ui, inside
+
+
+def box_exits(origins: np.ndarray, directions: np.ndarray, box_min, box_max) -> np.ndarray:
+    """(...,) distance (scene units) along rays ``origins``, ``directions``
+    (..., 3) to where they leave the box [``box_min``, ``box_max``]; inf where
+    a ray misses it or leaves it behind its origin."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / directions
+        t0, t1 = (np.asarray(box_min) - origins) * inv, (np.asarray(box_max) - origins) * inv
+    near = np.nanmax(np.minimum(t0, t1), axis=-1)
+    far = np.nanmin(np.maximum(t0, t1), axis=-1)
+    return np.where((far >= np.maximum(near, 0.0)) & (far > 0), far, np.inf)
 
 
 def farthest_around(depth: np.ndarray) -> np.ndarray:
@@ -142,8 +154,12 @@ class HybridPlanner(Planner):
         origins, directions = state.candidate_rays
         c, r = origins.shape[:2]
         pred = state.ensemble.predict(origins.reshape(-1, 3), directions.reshape(-1, 3))
-        surface = (pred["opacity"] > self.min_opacity).reshape(c, r)
-        points = (origins + directions * pred["distance_mean"].reshape(c, r, 1)).astype(np.float64)
+        hit = (pred["opacity"] > self.min_opacity).reshape(c, r)
+        # A ray that meets no surface yet looks as far as the box: unseen there, it may hold surface.
+        exits = box_exits(origins, directions, state.ensemble.bbox_min, state.ensemble.bbox_max)
+        surface = hit | np.isfinite(exits)
+        distance = np.where(hit, pred["distance_mean"].reshape(c, r), np.nan_to_num(exits, posinf=0.0))
+        points = (origins + directions * distance[..., None]).astype(np.float64)
         var = pred["rgb_var"].reshape(c, r, 3).sum(axis=2)
         mean_var = float(var[surface].mean()) if surface.any() else 0.0
         gain = 1.0 + self.disagreement * var / mean_var if mean_var > 0 else np.ones_like(var)

@@ -147,9 +147,8 @@ class FieldConfig:
         made anew by every optimiser step, while the gradients and the
         optimiser's parameters stay float32 (Instant-NGP's mixed
         precision): half the bytes and fewer instructions per corner on
-        the CPU, at equal held-out PSNR (Mic, 20 views, 1,500 steps of the
-        ``default`` preset: 30.84 dB either way). 0: they read the float32
-        table.
+        the CPU, at equal held-out PSNR (docs/field-measurements.md). 0:
+        they read the float32 table.
     anneal_steps:
         Coarse-to-fine annealing of the levels (FreeNeRF's frequency mask
         on grid levels): level 0 always counts, level ``l``'s features are

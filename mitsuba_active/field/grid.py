@@ -35,14 +35,12 @@ N_CHANNELS = 4
 
 #: Most bytes of the float32 table whose gradients one group of
 #: :func:`level_groups` receives at a time: about what a core's L2 cache
-#: (1 MiB on the 2-core machine) keeps of it between a ray's samples. On the
-#: 12-level ``default`` grid at 200 px (5 MiB a member) groups of 1.25 MiB
-#: (K=1) and 1.7 MiB (K=4) measured best, 5 MiB (one group) worst.
+#: (1 MiB on the 2-core machine) keeps of it between a ray's samples
+#: (sizes measured: docs/field-measurements.md).
 SCATTER_GROUP_BYTES = 3 << 19
 #: The same for the lookups' reads of the float16 table (2.5 MiB a member
 #: there), in at most half as many groups as levels: each lane also writes
-#: its group's K*4 partial sums. Measured there: K=1 best in 3 groups (2 and
-#: 6 a few % dearer), K=4 in 4 to 6 (12 groups 9 % dearer).
+#: its group's K*4 partial sums.
 LOOKUP_GROUP_BYTES = 1 << 20
 
 _PRIMES = (1, 2654435761, 805459861)
@@ -132,9 +130,8 @@ def level_groups(layout: GridLayout, entry_bytes: int, budget: int = None, most:
 
     A pass that reads or adds to the table group after group keeps its
     random accesses within that share, which the caches hold (see
-    :func:`group_lanes`). Dense levels alone gain nothing from it (the
-    ``fast`` preset's two levels with K=4 took 9 % more CPU time in two
-    groups than in one).
+    :func:`group_lanes`). Dense levels alone gain nothing from it: they
+    stay in one group.
     """
     L = len(layout.resolutions)
     if all(layout.dense):

@@ -151,7 +151,9 @@ def group_lanes(n: int, n_groups: int):
     Returns:
         (item ``mi.UInt32``, group ``mi.UInt32``, real ``mi.Bool``) per lane:
         the item (clamped to ``n - 1`` in the padding, where ``real`` is
-        False) and its group.
+        False) and its group; and the lanes a chunk has in each group
+        (opaque ``mi.UInt32``): item ``i``'s lane of group ``g`` is
+        ``(i // per_chunk * n_groups + g) * per_chunk + i % per_chunk``.
     """
     chunks = max(1, dr.thread_count())
     lanes = chunks * n_groups * (-(-int(n) // (chunks * 16)) * 16)
@@ -161,7 +163,7 @@ def group_lanes(n: int, n_groups: int):
     chunk = lane // (n_groups * per_chunk)
     group = lane // per_chunk - chunk * n_groups
     item = chunk * per_chunk + lane % per_chunk
-    return dr.minimum(item, last), group, item <= last
+    return dr.minimum(item, last), group, item <= last, per_chunk
 
 
 def corners(layout: GridLayout, u, levels=None):
@@ -261,7 +263,7 @@ def _query_by_groups(grid, layout: GridLayout, K: int, u, active, groups):
     point and level group (:func:`group_lanes`): each lane sums its group's
     levels into a buffer of partial sums, which the result adds up."""
     n = max(dr.width(u), dr.width(active))
-    item, group, real = group_lanes(n, len(groups))
+    item, group, real, per_chunk = group_lanes(n, len(groups))
     u = dr.gather(mi.Point3f, mi.Point3f(u), item)
     active = dr.gather(mi.Bool, mi.Bool(active) & dr.full(mi.Bool, True, n), item) & real
     XF = type(mi.ArrayXf())
@@ -287,13 +289,12 @@ def _query_by_groups(grid, layout: GridLayout, K: int, u, active, groups):
     lanes = dr.width(item)
     buffer = dr.empty(mi.Float, lanes * C)
     dr.scatter(buffer, XF(*sums), dr.arange(mi.UInt32, lanes))
-    # Point i's partial sums: lane i of its chunk in each group.
-    chunk_lanes = dr.opaque(mi.UInt32, lanes // (len(groups) * max(1, dr.thread_count())))
+    # Point i's partial sums: its lane in each group (see group_lanes).
     i = dr.arange(mi.UInt32, n)
-    chunk = i // chunk_lanes
+    chunk = i // per_chunk
     total = None
     for index in range(len(groups)):
-        p = dr.gather(XF, buffer, (chunk * len(groups) + index) * chunk_lanes + (i - chunk * chunk_lanes),
+        p = dr.gather(XF, buffer, (chunk * len(groups) + index) * per_chunk + (i - chunk * per_chunk),
                       shape=(C, n))
         total = p if total is None else total + p
     return [mi.Vector4f(*[total[k * N_CHANNELS + ch] for ch in range(N_CHANNELS)]) for k in range(K)]

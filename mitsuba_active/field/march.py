@@ -282,7 +282,7 @@ class _MarchedGrid(_MarchedComposite):
         """Add the stored gradients of every ray's samples to their corners,
         one lane per ray and level group (see the class docstring)."""
         layout, n_members, u, member, _ = self.lookup
-        ray, group, real = group_lanes(dr.width(self.first), len(self.groups))
+        ray, group, real, _ = group_lanes(dr.width(self.first), len(self.groups))
         first = dr.gather(mi.UInt32, self.first, ray)
         valid = dr.gather(mi.Bool, self.valid, ray) & real
         per_sample = member is not None and dr.width(member) > 1

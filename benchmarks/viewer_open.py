@@ -1,10 +1,11 @@
 """How long the viewer takes to show a 100-candidate run.
 
 Writes a run record of 100 candidates, 20 held-out views and 20 captures
-(128x128 views), then, in turns with a fresh Python process each time:
-imports the viewer and starts its server (``RunViewer``), opens the page in
-headless Chromium (Debian's, as the tests use it) and waits until every
-camera's frustum is in the page's scene. Prints the median of each phase
+(128x128 views), then, in turns, runs ``mitsuba-active view`` on it as a
+user does (a fresh ``python -m mitsuba_active`` process each time), opens
+the address it prints in headless Chromium (Debian's, as the tests use it)
+and waits until every camera's frustum is in the page's scene. Prints the
+median of each phase (start to the address printed, the page, the whole)
 and writes JSON.
 
 Usage::
@@ -16,7 +17,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
+import signal
+import re
 import statistics
 import subprocess
 import sys
@@ -33,17 +37,11 @@ from mitsuba_active.rigs import fibonacci_sphere  # noqa: E402
 from tests.browser import Browser  # noqa: E402
 from tests.test_report import SCENE_TREE, VIEWER_KINDS  # noqa: E402
 
-#: Serves the run, prints the seconds the imports and the server took, then waits to be stopped.
-SERVE = """import sys, time
-t0 = time.perf_counter()
-from mitsuba_active.viewer import RunViewer
-t1 = time.perf_counter()
-viewer = RunViewer(sys.argv[1], port=int(sys.argv[2]))
-t2 = time.perf_counter()
-print(f"READY {t1 - t0} {t2 - t1} {viewer.port}", flush=True)
-sys.stdin.read()
-viewer.close()
-"""
+#: Seconds between polls of the page: the figures' resolution.
+POLL_S = 0.01
+
+#: The line ``view`` prints once it serves: its address.
+SERVING = re.compile(r"^viewing .* at (http://\S+) ")
 
 
 def write_run(folder: Path) -> dict:
@@ -76,29 +74,31 @@ def main(argv=None):
         write_run(folder)
         for n in range(args.repeats):
             t0 = time.perf_counter()
-            proc = subprocess.Popen([sys.executable, "-c", SERVE, str(folder), str(args.port + n)],
-                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                    env={**__import__("os").environ, "PYTHONPATH": str(Path.cwd())})
+            proc = subprocess.Popen([sys.executable, "-m", "mitsuba_active", "view", str(folder), "--port",
+                                     str(args.port + n)], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True,
+                                    env={**os.environ, "PYTHONPATH": str(Path.cwd())})
             try:
-                line = ""
-                while not line.startswith("READY"):  # viser prints its own lines first
-                    line = proc.stdout.readline()
+                match = None
+                while match is None:  # viser prints its own lines first
+                    line = proc.stderr.readline()
                     if not line:
                         raise RuntimeError("the viewer stopped before serving")
-                imports, server, port = line.split()[1:]
+                    match = SERVING.match(line)
                 ready = time.perf_counter()
-                browser.open(f"http://127.0.0.1:{port}")
-                browser.wait_for(SCENE_TREE)
+                url = match.group(1)
+                browser.open(url)
+                loaded = time.perf_counter()
+                browser.wait_for(SCENE_TREE, interval=POLL_S)
                 condition = " && ".join(f"k.{kind} === {n}" for kind, n in want.items())
-                if not browser.wait_for(f"(k => {condition})({VIEWER_KINDS})"):
+                if not browser.wait_for(f"(k => {condition})({VIEWER_KINDS})", interval=POLL_S):
                     raise RuntimeError(f"the page did not show every camera: {browser.evaluate(VIEWER_KINDS)}")
                 shown = time.perf_counter()
                 kinds = browser.evaluate(VIEWER_KINDS)
             finally:
-                proc.stdin.close()
+                proc.send_signal(signal.SIGINT)  # Ctrl-C, as a user stops it
                 proc.wait(timeout=30)
             assert kinds == want, kinds
-            row = {"imports_s": float(imports), "server_s": float(server), "page_s": shown - ready,
+            row = {"serving_s": ready - t0, "load_s": loaded - ready, "page_s": shown - ready,
                    "total_s": shown - t0}
             rows.append(row)
             print(" ".join(f"{k} {v:.2f}" for k, v in row.items()), flush=True)

@@ -125,14 +125,14 @@ class Browser:
             raise RuntimeError(details.get("exception", {}).get("description") or details.get("text"))
         return result["result"].get("value")
 
-    def wait_for(self, expression: str, timeout: float | None = None):
-        """Poll ``expression`` until it is truthy; returns its value."""
+    def wait_for(self, expression: str, timeout: float | None = None, interval: float = 0.1):
+        """Poll ``expression`` every ``interval`` seconds until it is truthy; returns its value."""
         deadline = time.monotonic() + (timeout or self.timeout)
         while True:
             value = self.evaluate(expression)
             if value or time.monotonic() > deadline:
                 return value
-            time.sleep(0.1)
+            time.sleep(interval)
 
     def screenshot(self, path) -> bytes:
         png = base64.b64decode(self.send("Page.captureScreenshot", {"format": "png"}, session=True)["data"])

@@ -636,7 +636,7 @@ def test_an_interrupt_inside_a_late_import_still_exits_130(tmp_path):
     """An interrupt raised within exec() of a string (as dataclasses build their
     methods while a module is imported) must not turn the exit into a SIGINT death."""
     (tmp_path / "interrupted_command.py").write_text(
-        "from mitsuba_active.cli import _one_line_errors\n\n\n@_one_line_errors\ndef command():\n"
+        "from mitsuba_active.cli.common import one_line_errors\n\n\n@one_line_errors\ndef command():\n"
         "    exec('raise KeyboardInterrupt')\n\n\ncommand()\n")
     proc = subprocess.run([sys.executable, "-m", "interrupted_command"], capture_output=True, text=True,
                           cwd=tmp_path, env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
@@ -647,8 +647,8 @@ def test_an_interrupt_inside_a_drjit_loop_is_one_line_and_exits_130(tmp_path):
     """Dr.Jit re-raises what a loop's body raised as a RuntimeError: a Ctrl-C
     (or SIGTERM) that lands while the renderer traces its ray-marching loop."""
     (tmp_path / "interrupted_loop.py").write_text(
-        "from mitsuba_active.cli import _one_line_errors\nimport drjit as dr, mitsuba as mi\n\n\n"
-        "def body(i):\n    raise KeyboardInterrupt\n\n\n@_one_line_errors\ndef command():\n"
+        "from mitsuba_active.cli.common import one_line_errors\nimport drjit as dr, mitsuba as mi\n\n\n"
+        "def body(i):\n    raise KeyboardInterrupt\n\n\n@one_line_errors\ndef command():\n"
         "    dr.while_loop((mi.UInt32(0, 1),), lambda i: i < 3, body)\n\n\ncommand()\n")
     proc = subprocess.run([sys.executable, "-m", "interrupted_loop"], capture_output=True, text=True,
                           cwd=tmp_path, env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))

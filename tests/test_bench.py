@@ -612,7 +612,7 @@ def test_set_overrides_parse_as_toml_values():
                    "planner_options": {"form": "log"}, "rig": "interior", "fov": 40.5}
     assert isinstance(got["ensemble"], int) and isinstance(got["field"]["lr"], float)
     # plan's --planner-option reads its values the same way.
-    from mitsuba_active.cli import _parse_options
+    from mitsuba_active.cli.plan import _parse_options
 
     got = _parse_options(["form=log", "lam=.5", "probes=2", "flag=false", "angles=[10, 20]", "name=x y"])
     assert got == {"form": "log", "lam": 0.5, "probes": 2, "flag": False, "angles": [10, 20], "name": "x y"}
@@ -941,7 +941,7 @@ def test_a_variants_options_are_checked_before_anything_runs(tiny_suite, tmp_pat
 
 
 def test_bench_field_sets_every_runs_preset(tiny_suite, tmp_path, monkeypatch):
-    import mitsuba_active.cli as cli_module
+    import mitsuba_active.cli.bench as cli_module
 
     seen = {}
 

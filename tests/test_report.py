@@ -314,17 +314,23 @@ def test_the_viewer_shows_a_run_and_follows_it(tiny_run, browser, tmp_path):
         viewer.close()
 
 
-def test_the_viewer_opens_without_the_field_or_the_plots():
-    """Drawing the cameras loads neither the field and its training nor matplotlib or scipy: they come on
-    the first click (the field) or not at all."""
+@pytest.mark.parametrize("start", [
+    "import mitsuba_active.viewer",
+    # The command as a user runs it, up to its one-line error on a folder with no run.
+    "from mitsuba_active.cli import main\ntry:\n    main(['view', 'no-such-run'], prog_name='mitsuba-active')\n"
+    "except SystemExit as exc:\n    assert exc.code == 2, exc.code",
+])
+def test_the_viewer_opens_without_the_field_or_the_plots(start):
+    """Drawing the cameras loads neither the field and its training nor the planners, the benchmark
+    runner, trimesh, matplotlib or scipy: they come on the first click (the field) or not at all."""
     import subprocess
     import sys
 
     heavy = ("mitsuba_active.field", "mitsuba_active.training", "mitsuba_active.run", "mitsuba_active.webpage",
-             "matplotlib", "scipy")
-    code = (f"import sys; import mitsuba_active.viewer; print([m for m in {heavy!r} if m in sys.modules])")
+             "mitsuba_active.planners", "mitsuba_active.bench", "trimesh", "matplotlib", "scipy")
+    code = f"{start}\nimport sys\nprint([m for m in {heavy!r} if m in sys.modules])"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "[]"
+    assert out.stdout.strip() == "[]", out.stdout
 
 
 def test_the_viewers_thumbnails_and_colours(tmp_path):

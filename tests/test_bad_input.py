@@ -1075,6 +1075,12 @@ def test_a_mistyped_choice_is_answered_with_the_nearest(spot_xml, out):
     assert result.exit_code == 2 and "(Did you mean 'sphere'?)" in result.output, result.output
 
 
+@pytest.mark.parametrize("name, hint", [("pla", " Did you mean 'plan'?"), ("xyz", "")])
+def test_a_mistyped_command_is_answered_with_the_nearest(name, hint):
+    result = CliRunner().invoke(main, [name])
+    assert result.exit_code == 2 and f"Error: No such command '{name}'.{hint}\n" in result.output, result.output
+
+
 # -- errors about the output folder name its option ------------------------------------------
 
 def test_errors_about_the_out_folder_name_it(finished_run, spot_xml, tmp_path, monkeypatch):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import importlib
 
+from ..checks import nearest
 from ..interrupts import interruptible_imports
 
 with interruptible_imports():  # click loads here, after the package's own imports
@@ -27,6 +28,13 @@ class _Commands(click.Group):
 
     def list_commands(self, ctx) -> list[str]:
         return sorted(set(COMMANDS) | set(self.commands))
+
+    def resolve_command(self, ctx, args):
+        name = args[0] if args else None
+        if name is not None and name not in COMMANDS and name not in self.commands:
+            near = nearest(name, COMMANDS)  # the group's own commands are not loaded to be compared
+            ctx.fail(f"No such command {name!r}." + (f" Did you mean {near!r}?" if near else ""))
+        return super().resolve_command(ctx, args)
 
     def get_command(self, ctx, name: str):
         if name not in COMMANDS:

@@ -1,13 +1,16 @@
 """Empty-space skipping (occupancy grid) and the empty-ray loss."""
 
 import numpy as np
+import pytest
 
 import mitsuba_active  # noqa: F401  (variant first)
 import drjit as dr
 import mitsuba as mi
 
-from mitsuba_active.field import Ensemble, FieldConfig
-from mitsuba_active.field.render import render_flat
+from mitsuba_active.errors import UserError
+from mitsuba_active.field import Ensemble, FieldConfig, render
+from mitsuba_active.field.regularisers import ray_regularisers
+from mitsuba_active.field.render import render_flat, render_members
 from mitsuba_active.rigs import fibonacci_directions
 from tests.test_field import BOX, camera_rays, psnr, tiny_config, views
 
@@ -154,3 +157,75 @@ def test_skipping_changes_a_converged_default_render_by_less_than_half_a_decibel
     without = psnr(render_without_skipping(ens, o, d), rgb)
     # Measured: 24.31 dB with skipping, 24.27 dB without.
     assert abs(with_skipping - without) < 0.5, (with_skipping, without)
+
+
+def _render_and_derivatives(ens, params_of, o, d, jitter, member, reg):
+    """Colours, distances and opacities of a render with skipping, the grid's gradient of their
+    sum (with the regularisers) and the opacity's forward derivative along a fixed tangent."""
+    params = params_of()
+    dr.enable_grad(params.grid)
+    if member is None:
+        outs = render_members(params, o, d, jitter, reg=reg)
+    else:
+        outs = [render_flat(params, o, d, member, jitter, reg=reg)]
+    loss = sum(dr.sum(dr.squared_norm(out["rgb"]) + out["distance"] + out["opacity"] + out["regulariser"])
+               for out in outs)
+    dr.backward(loss)
+    grad = np.array(dr.grad(params.grid))
+    params = params_of()
+    dr.enable_grad(params.grid)
+    outs2 = render_members(params, o, d, jitter, reg=reg)
+    tangent = np.random.default_rng(3).normal(size=dr.width(params.grid)).astype(np.float32)
+    dr.set_grad(params.grid, mi.Float(tangent))
+    dr.forward_to(outs2[0]["opacity"])
+    values = [np.concatenate([np.array(out[k]).ravel() for k in ("rgb", "distance", "opacity", "regulariser")])
+              for out in outs]
+    return np.concatenate(values), grad, np.array(dr.grad(outs2[0]["opacity"]))
+
+
+def test_the_compacted_march_matches_marching_every_sample(monkeypatch):
+    """Marching the occupied samples alone (render.compact_samples) gives the outputs and
+    derivatives of marching every sample, skipped ones with no density."""
+    rng = np.random.default_rng(0)
+    for K in (1, 2):
+        cfg = tiny_config(n_samples=16, distortion_weight=0.01, occlusion_weight=0.1, density_bias=0.0,
+                          init_scale=2.0)
+        ens = Ensemble(*BOX, n_members=K, config=cfg, seed=1)
+        o, d = camera_rays([0.3, 0.4, 2.5], width=8, height=8)
+        o, d = mi.Point3f(o.T), mi.Vector3f(d.T)
+        jitter = mi.Float(rng.uniform(size=64 * 16).astype(np.float32))
+        mask = mi.Bool(rng.uniform(size=8 ** 3) < 0.4)
+
+        def params_of():
+            p = ens.params()
+            p.grid = mi.Float(np.array(dr.detach(p.grid)))
+            p.half_grid = None
+            p.occupancy, p.occupancy_resolution = mask, 8
+            return p
+
+        member = None if K == 1 else mi.UInt32(np.arange(64) % K)
+        compacted = _render_and_derivatives(ens, params_of, o, d, jitter, member, ray_regularisers(cfg))
+        with monkeypatch.context() as m:
+            m.setattr(render, "compact_samples", lambda *args, **kw: None)
+            every = _render_and_derivatives(ens, params_of, o, d, jitter, member, ray_regularisers(cfg))
+        for got, want in zip(compacted, every):
+            assert np.abs(want).max() > 0
+            np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
+
+
+def test_the_occupancy_forgets_at_its_decay():
+    """A cell's stored opacity is multiplied by occupancy_decay at every refresh: with no density
+    left, a cell at 1 stays occupied (threshold 0.1) for 3 refreshes at 0.5 and 44 at 0.95."""
+    for decay, refreshes in ((0.5, 3), (0.95, 44)):
+        cfg = tiny_config(occupancy_resolution=4, occupancy_threshold=0.1, occupancy_decay=decay,
+                          density_bias=-40.0)
+        ens = Ensemble(*BOX, n_members=1, config=cfg, seed=0)
+        ens._set_occupancy(dr.full(mi.Float, 1.0, 4 ** 3))
+        for _ in range(refreshes):
+            ens._refresh_occupancy()
+        assert ens.occupancy().all()
+        ens._refresh_occupancy()
+        assert not ens.occupancy().any()
+    for bad in (0.0, 1.5):
+        with pytest.raises(UserError, match="occupancy_decay"):
+            tiny_config(occupancy_decay=bad)

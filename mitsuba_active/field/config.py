@@ -40,6 +40,14 @@ MAX_CONTRACTION = 1e5
 HASH_LEVELS = 12
 HASH_BASE = 16
 HASH_LOG2_TABLE = 15
+#: Levels of the hash grid whose finest level has the given cells (64: images
+#: of 100-128 pixels), where twelve levels, 1.13 times apart, would be more than
+#: a fourfold range needs: six (1.32 apart) scored as well or better held out
+#: and train in about half the time (docs/field-measurements.md).
+HASH_LEVELS_BY_FINEST = {64: 6}
+#: The evaluation field's ``occupancy_decay`` from 100-pixel images on: its
+#: occupancy grid forgets the early fog within about 7 refreshes.
+IMAGE_OCCUPANCY_DECAY = 0.5
 
 
 def image_scaled_grid(width: int) -> dict:
@@ -48,9 +56,11 @@ def image_scaled_grid(width: int) -> dict:
     The finest level has about half as many cells across as the images have
     pixels (32 to 256 cells), a ray twice as many samples as that level has
     cells (64 to 256). Up to 64 pixels: two dense levels (16, 32 cells).
-    From 100 pixels: a hash grid of 12 levels from 16 cells to that finest,
+    From 100 pixels: a hash grid of 12 levels (6 where the finest has 64
+    cells: :data:`HASH_LEVELS_BY_FINEST`) from 16 cells to that finest,
     in equal ratios, the levels whose vertices fit 2^15 entries dense, the
-    others hashed into 2^15; empty space is skipped, the colour also depends
+    others hashed into 2^15; empty space is skipped (the occupancy grid
+    forgetting at :data:`IMAGE_OCCUPANCY_DECAY`), the colour also depends
     on the view (degree 1) and the distortion loss (0.01) keeps the weights
     compact.
 
@@ -61,10 +71,12 @@ def image_scaled_grid(width: int) -> dict:
     finest = min(256, max(32, 1 << max(0, round(math.log2(max(1, int(width)) / 2)))))
     if finest <= 32:
         return {"n_levels": 2, "n_samples": 64, "occupancy_resolution": 0}
-    return {"n_levels": HASH_LEVELS, "base_resolution": HASH_BASE,
-            "per_level_scale": (finest / HASH_BASE) ** (1.0 / (HASH_LEVELS - 1)),
+    levels = HASH_LEVELS_BY_FINEST.get(finest, HASH_LEVELS)
+    return {"n_levels": levels, "base_resolution": HASH_BASE,
+            "per_level_scale": (finest / HASH_BASE) ** (1.0 / (levels - 1)),
             "log2_table_size": HASH_LOG2_TABLE, "n_samples": min(256, 2 * finest),
-            "occupancy_resolution": 64, "view_degree": 1, "distortion_weight": 0.01}
+            "occupancy_resolution": 64, "occupancy_decay": IMAGE_OCCUPANCY_DECAY, "view_degree": 1,
+            "distortion_weight": 0.01}
 
 
 @dataclass(frozen=True)
@@ -106,10 +118,12 @@ FIELD_PRESETS = {
                         "two dense levels (16, 32 cells), 64 samples a ray: for tests and quick sweeps"),
     "default": FieldPreset({"n_levels": 2, "log2_table_size": 18, "lr": 0.01, "empty_weight": 0.01},
                            {"n_levels": 2, "per_level_scale": 2.0, "log2_table_size": 17, "n_samples": 64,
-                            "occupancy_resolution": 0, "view_degree": 0, "distortion_weight": 0.0},
+                            "occupancy_resolution": 0, "occupancy_decay": 0.95, "view_degree": 0,
+                            "distortion_weight": 0.0},
                            "a grid that follows the images' width: fast's up to 64 pixels; from 100, a "
-                           "12-level hash grid from 16 cells to half the width (up to 256), twice as many samples "
-                           "a ray (up to 256), empty-space skipping, view-dependent colour and the distortion loss",
+                           "12-level hash grid (6 levels at 100-128 pixels) from 16 cells to half the width (up to "
+                           "256), twice as many samples a ray (up to 256), empty-space skipping, view-dependent "
+                           "colour and the distortion loss",
                            image_scaled=True),
 }
 #: The preset of runs that do not name one.
@@ -280,6 +294,15 @@ class FieldConfig:
         there stays below this.
     occupancy_interval:
         Training steps between refreshes of the grid.
+    occupancy_decay:
+        Factor applied to the grid's stored opacities at every refresh
+        before the new ones are folded in (a decaying maximum), in (0, 1].
+        Near 1 a cell that was foggy early on stays occupied, and costs its
+        lookups, long after its density has gone; the default (0.95,
+        Instant-NGP's) keeps it about 90 refreshes. The ``default`` preset's
+        evaluation field forgets within about 7 (0.5): on the bundled
+        scene at 128 px its 1,500 steps took 0.62 times as long at 0.03 dB
+        less held-out PSNR (docs/field-measurements.md).
     occupancy_warmup:
         Training steps without skipping after the rays are set (or
         replaced), before the first refresh (0 acts as 1: the first grid
@@ -319,6 +342,7 @@ class FieldConfig:
     occupancy_resolution: int = 0
     occupancy_threshold: float = 0.01
     occupancy_interval: int = 16
+    occupancy_decay: float = 0.95
     occupancy_warmup: int = 64
 
     def __post_init__(self):
@@ -393,6 +417,8 @@ class FieldConfig:
                 or int(self.occupancy_warmup) < 0:
             raise UserError("FieldConfig: occupancy_threshold must be > 0, occupancy_interval >= 1 "
                             "and occupancy_warmup >= 0")
+        if not 0 < self.occupancy_decay <= 1:
+            raise UserError(f"FieldConfig.occupancy_decay must be in (0, 1], got {self.occupancy_decay}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -33,7 +33,7 @@ from .fisher import fisher_diagonal
 from .grid import GridLayout, anneal_weights, half_table, init_grid
 from .inputs import checked_rays, point, triples
 from .io import load_ensemble, save_ensemble
-from .occupancy import DECAY, cell_opacity
+from .occupancy import cell_opacity
 from .regularisers import random_background, ray_regularisers
 from .render import render_members
 from .samples import FieldParams, hash_u32, uniform_from_u32
@@ -351,7 +351,7 @@ class Ensemble:
         key = dr.opaque(mi.UInt32, (self.seed * 0x2545F491 + self._step * 0x9E3779B9) & 0xFFFFFFFF)
         value = cell_opacity(self.params(), cfg.occupancy_resolution, key)
         if self._occupancy is not None:
-            value = dr.maximum(value, self._occupancy * DECAY)
+            value = dr.maximum(value, self._occupancy * float(cfg.occupancy_decay))
         self._set_occupancy(value)
 
     def _set_occupancy(self, value):

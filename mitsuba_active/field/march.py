@@ -48,13 +48,22 @@ class _MarchedComposite(dr.CustomOp):
         self.t, self.valid, self.S, self.K = t, valid, S, len(raws)
         self.density_bias, self.inv_diag = density_bias, inv_diag
         self.reg = reg
+        self._pack(raws, delta)
+        self.first = dr.arange(mi.UInt32, dr.width(t) // S) * S  # each ray's first sample
+        self.delta = dr.gather(mi.Float, delta, self.first)
+        self.per_ray = dr.width(valid) == dr.width(self.first)
+        return self._outputs()
+
+    def _pack(self, raws, *also):
+        """Keep the members' raw features for the marches (``self.raws``),
+        evaluated with ``self.t`` and the arrays ``also``."""
         # Several members' features of a sample side by side (K*4 floats):
         # the loop reads them with one packet load per ray instead of K*4
         # strided gathers. One member's 4 are read faster as they are (the
         # packing's transposes cost more than 4 gathers). Where the lookups are
         # not yet evaluated, one kernel traces them, writes them (packed) and
         # writes t and delta.
-        n = dr.width(t)
+        n = dr.width(self.t)
         self.XF = type(mi.ArrayXf())  # for the packet gathers and scatters
         if self.K > 1:
             self.raws = dr.empty(mi.Float, 4 * self.K * n)
@@ -64,21 +73,26 @@ class _MarchedComposite(dr.CustomOp):
             dr.scatter(self.raws, self.XF(*[r[ch] for r in raws for ch in range(4)]), dr.arange(mi.UInt32, n))
         else:
             self.raws = raws[0]
-        dr.eval(self.raws, t, delta)
-        self.first = dr.arange(mi.UInt32, n // S) * S  # each ray's first sample
-        self.delta = dr.gather(mi.Float, delta, self.first)
-        self.per_ray = dr.width(valid) == dr.width(self.first)
+        dr.eval(self.raws, self.t, *also)
+
+    def _outputs(self):
+        """March the rays (after :meth:`eval` has set ``first``, ``delta``
+        and ``per_ray``) and return the members' outputs."""
         # The distortion's distances are normalised by the ray's length in the box.
-        self.inv_length = dr.select(self.delta > 0, dr.rcp(self.delta * S), 0.0)
+        self.inv_length = dr.select(self.delta > 0, dr.rcp(self.delta * self.S), 0.0)
         out, _ = self._march()
         # Evaluated here so that the derivative passes read the outputs
         # instead of marching the rays again.
         dr.eval(out)
         self.out = out
-        if reg is None:
+        if self.reg is None:
             return out
-        dw, ow, _ = reg
+        dw, ow, _ = self.reg
         return tuple((rgb, dsum, opac, dw * dist + ow * occ) for rgb, dsum, opac, dist, occ in out)
+
+    def _more(self, i):
+        """Whether a ray's march goes on to its step ``i``."""
+        return i < self.S
 
     def _distortion(self, w, t_i, p_dsum, p_opac):
         """A sample's share of the distortion loss (weight ``w`` at ``t_i``,
@@ -92,8 +106,8 @@ class _MarchedComposite(dr.CustomOp):
         inner = dr.fma(t_i, dr.fma(2.0, p_opac, -opac), dr.fma(-2.0, p_dsum, dsum))
         return dr.fma(2.0 * self.inv_length, inner, w * (2.0 / (3 * self.S)))
 
-    def _leading(self, i):
-        """Whether step ``i`` of the march is among the samples the occlusion penalty covers."""
+    def _leading(self, i, j):
+        """Whether step ``i`` of the march (sample ``j``) is among the samples the occlusion penalty covers."""
         return i < self.reg[2]
 
     def _sample(self, i):
@@ -138,7 +152,7 @@ class _MarchedComposite(dr.CustomOp):
                 new = [trans_after, dr.fma(c, w, p_rgb), dr.fma(w, t_i, p_dsum), p_opac + w]
                 if self.reg is not None:
                     new += [state[4] + self._distortion(w, t_i, p_dsum, p_opac),
-                            state[5] + dr.select(self._leading(i), sigma * self.delta, 0.0)]
+                            state[5] + dr.select(self._leading(i, j), sigma * self.delta, 0.0)]
                 if visit is not None:
                     out = self.out[k]
                     rest = (out[0] - new[1], out[1] - new[2], out[2] - new[3])
@@ -148,7 +162,7 @@ class _MarchedComposite(dr.CustomOp):
 
         extra = () if self.reg is None else (mi.Float(z), mi.Float(z))
         start = tuple((z + 1.0, mi.Color3f(z), mi.Float(z), mi.Float(z)) + extra for _ in range(self.K))
-        _, sums, acc = dr.while_loop((mi.UInt32(0), start, acc), lambda i, *_: i < self.S, step)
+        _, sums, acc = dr.while_loop((mi.UInt32(0), start, acc), lambda i, *_: self._more(i), step)
         return tuple(member[1:] for member in sums), acc
 
     def _march_gradients(self):
@@ -187,7 +201,7 @@ class _MarchedComposite(dr.CustomOp):
                 before = dr.fma(w, s_i, before)
                 g_tau = dr.fma(trans_after, s_i, before - total[k])
                 if self.reg is not None:
-                    g_tau = g_tau + dr.select(self._leading(i), ow * g_out[k][3], 0.0)
+                    g_tau = g_tau + dr.select(self._leading(i, j), ow * g_out[k][3], 0.0)
                     marched.append((trans_after, before, dr.fma(w, t_i, p_dsum), p_opac + w))
                 else:
                     marched.append((trans_after, before))
@@ -199,7 +213,7 @@ class _MarchedComposite(dr.CustomOp):
         z = dr.zeros(mi.Float, dr.width(self.delta))
         extra = () if self.reg is None else (mi.Float(z), mi.Float(z))
         dr.while_loop((mi.UInt32(0), tuple((z + 1.0, mi.Float(z)) + extra for _ in range(self.K))),
-                      lambda i, _: i < self.S, step)
+                      lambda i, _: self._more(i), step)
 
     def _write_gradients(self, j, grads, valid):
         """Store sample ``j``'s gradients (``grads``: K*4 ``mi.Float``, laid
@@ -231,7 +245,7 @@ class _MarchedComposite(dr.CustomOp):
                 u = self._distortion_slope(k, w, t_i, *before)
                 wu = dr.fma(w, u, wu)
                 rest_u = 2.0 * self.out[k][3] - wu
-                slope = dw * dr.fma(trans_after, u, -rest_u) + dr.select(self._leading(i), ow, 0.0)
+                slope = dw * dr.fma(trans_after, u, -rest_u) + dr.select(self._leading(i, j), ow, 0.0)
                 member += (dr.fma(d_tau, slope, d_reg), wu)
             return acc[:k] + (member,) + acc[k + 1:]
 

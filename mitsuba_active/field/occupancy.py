@@ -9,8 +9,8 @@ spend their time; their density is 0.
 
 During training the grid is refreshed every ``occupancy_interval`` steps
 from the members' density at one jittered point per cell, keeping a
-decaying maximum (as Instant-NGP does) so that one unlucky point does not
-empty a cell. It starts fully occupied, and starts over whenever the
+decaying maximum (as Instant-NGP does; ``FieldConfig.occupancy_decay``) so
+that one unlucky point does not empty a cell. It starts fully occupied, and starts over whenever the
 training rays are replaced (views added), for ``occupancy_warmup`` steps:
 new views can then grow density where earlier views showed empty space.
 """
@@ -22,10 +22,6 @@ import mitsuba as mi
 
 from .grid import query
 from .samples import contracted_stretch, field_at, hash_u32, uniform_from_u32
-
-#: Factor applied to the stored maximum at every refresh.
-DECAY = 0.95
-
 
 def cell_index(u, resolution: int):
     """Flat cell index (``mi.UInt32``, x fastest) of box-normalised points ``u``."""

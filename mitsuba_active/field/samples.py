@@ -208,31 +208,36 @@ def _contracted_samples(o, d, params: FieldParams, jitter):
                 uniform=False)
 
 
-def sample_along_rays(o, d, params: FieldParams, jitter=None):
+def sample_along_rays(o, d, params: FieldParams, jitter=None, index=None):
     """Stratified sample positions, one block of S samples per ray.
 
     Args:
         o, d: per-ray ``mi.Point3f`` / ``mi.Vector3f`` (length R; either
             may have length 1, shared by all rays).
-        jitter: per-sample ``mi.Float`` in [0, 1) (length R*S), or None for
-            bin midpoints (deterministic rendering).
+        jitter: per-sample ``mi.Float`` in [0, 1) (length R*S, or that of
+            ``index``), or None for bin midpoints (deterministic rendering).
+        index: None (every sample), or ``mi.UInt32`` indices among the R*S
+            samples of those to make (uniform bins only: not in a contracted field).
     Returns:
-        dict of per-sample arrays (length R*S): ``ray`` (UInt32 ray index),
-        ``t`` (distance from origin), ``delta`` (bin length), ``p``
-        (Point3f), ``u`` (Point3f box-normalised), ``valid`` (Bool), and
-        per ray (length R) ``ray_valid`` (Bool: the ray meets the box), ``o``
-        and ``d`` (the rays, as given), and ``uniform`` (a Python bool: the
-        bins of a ray are of one length). A contracted field
+        dict of per-sample arrays (length R*S, or that of ``index``):
+        ``ray`` (UInt32 ray index), ``t`` (distance from origin), ``delta``
+        (bin length), ``p`` (Point3f), ``u`` (Point3f box-normalised),
+        ``valid`` (Bool); per ray (length R) ``ray_valid`` (Bool: the ray
+        meets the box), ``ray_delta`` (its bin length), ``o`` and ``d`` (the
+        rays, as given); ``uniform`` (a Python bool: the bins of a ray are
+        of one length) and ``jitter`` (as given). A contracted field
         (``params.contraction``) samples the box and the space beyond it
         (see :func:`_contracted_samples`): ``u`` is then in contracted
         coordinates (:func:`field_position`) and every ray is valid.
     """
     if params.contraction:
-        return _contracted_samples(o, d, params, jitter)
+        if index is not None:
+            raise ValueError("sample_along_rays: index is for uniform bins, not a contracted field's")
+        return {**_contracted_samples(o, d, params, jitter), "jitter": jitter}
     S = int(params.n_samples)
     R = max(dr.width(o), dr.width(d))  # one origin (a pinhole camera's) may serve every ray
     t_near, t_far = ray_box(o, d, params.box_min, params.box_max, params.near)
-    i = dr.arange(mi.UInt32, R * S)
+    i = dr.arange(mi.UInt32, R * S) if index is None else mi.UInt32(index)
     ray = i // S
     k = mi.Float(i - ray * S)
     # Gathering the per-ray quantities keeps everything in one flat kernel.
@@ -247,7 +252,8 @@ def sample_along_rays(o, d, params: FieldParams, jitter=None):
     t = dr.fma(frac, delta, tn)
     p = dr.fma(dd, t, oo)
     u = box_normalised(params, p)
-    return dict(ray=ray, t=t, delta=delta, p=p, u=u, valid=valid, ray_valid=t_far > t_near, o=o, d=d, uniform=True)
+    return dict(ray=ray, t=t, delta=delta, p=p, u=u, valid=valid, ray_valid=t_far > t_near,
+                ray_delta=dr.maximum(t_far - t_near, 0.0) * (1.0 / S), o=o, d=d, uniform=True, jitter=jitter)
 
 
 def field_at(params: FieldParams, u, member, active=True, raw=None):

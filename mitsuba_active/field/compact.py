@@ -1,0 +1,118 @@
+"""Empty-space skipping's march over the occupied samples alone, compacted ray by ray.
+
+With an occupancy grid (:mod:`.occupancy`) most of a ray's S samples lie
+in empty cells, where the density is 0: they leave the transmittance and
+every running sum of the compositing exactly as they are. Here the occupied
+samples are compacted (``dr.compress``, which keeps their order, so each
+ray's come one after another), their positions, distances and features are
+made for them alone, and each ray's march loops over its own ones only
+(one ray per lane, a lane stopping after its count), forward and backward.
+The outputs and derivatives are those of marching all S samples (tested);
+what no longer grows with S is the work per skipped sample: writing its
+position and features, reading them back in both marches, and writing its
+gradient.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from .grid import accumulate, query
+from .march import _MarchedGrid
+from .occupancy import occupied
+from .samples import sample_along_rays
+
+
+def compact_samples(params, s: dict, member=None) -> dict | None:
+    """The occupied samples of ``s`` (:func:`.samples.sample_along_rays`
+    of uniform bins, with ``params.occupancy``), compacted.
+
+    Args:
+        member: None, an int, or a per-sample ``mi.UInt32`` (R*S).
+    Returns:
+        None where no sample is occupied, else a dict of per-occupied-sample
+        arrays (length M, ray after ray): ``u`` (``mi.Point3f``), ``t``,
+        ``k`` (``mi.UInt32``, its index along its ray), ``member`` (as
+        given, gathered where per sample); and per ray (length R):
+        ``first`` (``mi.UInt32``, the index of its first occupied sample),
+        ``count`` (``mi.UInt32``, how many it has), ``delta`` (bin length).
+    """
+    S = int(params.n_samples)
+    R = dr.width(s["ray_valid"])
+    ids = dr.compress(s["valid"] & occupied(params.occupancy, params.occupancy_resolution, s["u"]))
+    M = dr.width(ids)
+    if M == 0:
+        return None
+    jitter = None if s["jitter"] is None else dr.gather(mi.Float, s["jitter"], ids)
+    at = sample_along_rays(s["o"], s["d"], params, jitter, index=ids)
+    # Each ray's run of samples: its first and one past its last, written by
+    # the samples where the ray changes (no atomics, no prefix sum).
+    m = dr.arange(mi.UInt32, M)
+    last = dr.opaque(mi.UInt32, M - 1)  # opaque: M changes from step to step, the kernels do not
+    ray = ids // S
+    starts = (m == 0) | (dr.gather(mi.UInt32, ids, m - 1, m > 0) // S != ray)
+    ends = (m == last) | (dr.gather(mi.UInt32, ids, m + 1, m < last) // S != ray)
+    first, end = dr.zeros(mi.UInt32, R), dr.zeros(mi.UInt32, R)
+    dr.scatter(first, m, ray, starts)
+    dr.scatter(end, m + 1, ray, ends)
+    if member is not None and not isinstance(member, int) and dr.width(member) > 1:
+        member = dr.gather(mi.UInt32, member, ids)
+    out = {"u": at["u"], "t": at["t"], "k": ids - ray * S, "member": member, "first": first, "count": end - first,
+           "delta": at["ray_delta"]}
+    dr.eval(out["u"], out["t"], out["k"], first, end, out["delta"])
+    return out
+
+
+class _CompactMarchedGrid(_MarchedGrid):
+    """:class:`.march._MarchedGrid` over compacted samples (see the module
+    docstring): ray ``r``'s march reads samples ``first[r]`` to
+    ``first[r] + count[r] - 1``; the backward march stores each sample's
+    gradient, and one kernel adds them to the grid corners of the occupied
+    samples alone."""
+
+    def eval(self, grid, raws, lookup, t, first, count, k, delta, S, density_bias, inv_diag, reg=None):
+        self.grid_width, self.lookup = dr.width(grid), lookup
+        self.t, self.valid, self.S, self.K = t, mi.Bool(True), S, len(raws)
+        self.density_bias, self.inv_diag, self.reg = density_bias, inv_diag, reg
+        self.count, self.k = count, k
+        self._pack(raws)
+        self.first, self.delta, self.per_ray = first, delta, True
+        return self._outputs()
+
+    def _more(self, i):
+        return i < self.count
+
+    def _leading(self, i, j):
+        return dr.gather(mi.UInt32, self.k, j) < self.reg[2]
+
+    def _write_gradients(self, j, grads, valid):
+        dr.scatter(self.grads, self.XF(*grads), j)
+
+    def backward(self):
+        layout, n_members, u, member, _ = self.lookup
+        n = dr.width(self.t)
+        self.table_grads = dr.zeros(mi.Float, self.grid_width)
+        self.grads = dr.empty(mi.Float, 4 * self.K * n)  # the march writes every sample
+        self._march_gradients()
+        g = dr.gather(self.XF, self.grads, dr.arange(mi.UInt32, n), shape=(4 * self.K, n))
+        accumulate(self.table_grads, layout, n_members, u, [g[c] for c in range(4 * self.K)], member, True)
+        self.set_grad_in("grid", self.table_grads)
+
+    def forward(self):
+        layout, n_members, u, member, active = self.lookup
+        d_raws = query(self.grad_in("grid"), layout, n_members, u, member, active)
+        self._march_tangents(d_raws if member is None else [d_raws])
+
+    def name(self):
+        return "composite_marched_compact"
+
+
+def march_compact(params, c: dict, raws, reg=None):
+    """Composite compacted samples ``c`` (:func:`compact_samples`) from their
+    raw features ``raws`` (a tuple, one ``mi.Vector4f`` per member, length
+    M), differentiable with respect to ``params.grid``: one (rgb, distance
+    sum, opacity[, regularisers]) tuple per member, per ray (length R)."""
+    lookup = (params.layout, params.n_members, c["u"], c["member"], True)
+    return dr.custom(_CompactMarchedGrid, params.grid, raws, lookup, c["t"], c["first"], c["count"], c["k"],
+                     c["delta"], int(params.n_samples), float(params.density_bias), 1.0 / params.diag, reg)

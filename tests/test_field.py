@@ -717,8 +717,8 @@ def test_the_default_grid_follows_the_images_width():
     # Six levels over the fourfold range of 100-128 pixels, twelve from 200.
     assert [grids[w].n_levels for w in grids] == [2, 2, 6, 12, 12]
     assert FieldConfig.preset("default", width=128).n_levels == 6
-    # The evaluation field's occupancy grid forgets fast; the others' keep FieldConfig's decay.
-    assert [grids[w].occupancy_decay for w in grids] == [0.95, 0.95, 0.5, 0.5, 0.5]
+    # The evaluation field's occupancy grid forgets fast at 100-128 pixels; the others keep FieldConfig's decay.
+    assert [grids[w].occupancy_decay for w in grids] == [0.95, 0.95, 0.5, 0.95, 0.95]
     # From 16 cells to half the width (at most 256), the hashed levels in 2^15 entries.
     finest = [round(g.base_resolution * g.per_level_scale ** (g.n_levels - 1)) for g in grids.values()]
     assert finest == [32, 32, 64, 128, 256] and grids[200].log2_table_size == 15

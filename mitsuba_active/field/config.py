@@ -45,9 +45,14 @@ HASH_LOG2_TABLE = 15
 #: a fourfold range needs: six (1.32 apart) scored as well or better held out
 #: and train in about half the time (docs/field-measurements.md).
 HASH_LEVELS_BY_FINEST = {64: 6}
-#: The evaluation field's ``occupancy_decay`` from 100-pixel images on: its
-#: occupancy grid forgets the early fog within about 7 refreshes.
-IMAGE_OCCUPANCY_DECAY = 0.5
+#: The evaluation field's ``occupancy_decay`` where its finest level has the
+#: given cells (64: images of 100-128 pixels): its occupancy grid forgets the
+#: early fog within about 7 refreshes, which halves the training there; on a
+#: finer grid (Mic at 200 pixels) it cost 0.4 dB and no time, so there the
+#: grid keeps FieldConfig's decay.
+OCCUPANCY_DECAY_BY_FINEST = {64: 0.5}
+#: ``FieldConfig.occupancy_decay``'s default.
+OCCUPANCY_DECAY = 0.95
 
 
 def image_scaled_grid(width: int) -> dict:
@@ -60,7 +65,7 @@ def image_scaled_grid(width: int) -> dict:
     cells: :data:`HASH_LEVELS_BY_FINEST`) from 16 cells to that finest,
     in equal ratios, the levels whose vertices fit 2^15 entries dense, the
     others hashed into 2^15; empty space is skipped (the occupancy grid
-    forgetting at :data:`IMAGE_OCCUPANCY_DECAY`), the colour also depends
+    forgetting at :data:`OCCUPANCY_DECAY_BY_FINEST`), the colour also depends
     on the view (degree 1) and the distortion loss (0.01) keeps the weights
     compact.
 
@@ -75,7 +80,8 @@ def image_scaled_grid(width: int) -> dict:
     return {"n_levels": levels, "base_resolution": HASH_BASE,
             "per_level_scale": (finest / HASH_BASE) ** (1.0 / (levels - 1)),
             "log2_table_size": HASH_LOG2_TABLE, "n_samples": min(256, 2 * finest),
-            "occupancy_resolution": 64, "occupancy_decay": IMAGE_OCCUPANCY_DECAY, "view_degree": 1,
+            "occupancy_resolution": 64,
+            "occupancy_decay": OCCUPANCY_DECAY_BY_FINEST.get(finest, OCCUPANCY_DECAY), "view_degree": 1,
             "distortion_weight": 0.01}
 
 
@@ -118,7 +124,7 @@ FIELD_PRESETS = {
                         "two dense levels (16, 32 cells), 64 samples a ray: for tests and quick sweeps"),
     "default": FieldPreset({"n_levels": 2, "log2_table_size": 18, "lr": 0.01, "empty_weight": 0.01},
                            {"n_levels": 2, "per_level_scale": 2.0, "log2_table_size": 17, "n_samples": 64,
-                            "occupancy_resolution": 0, "occupancy_decay": 0.95, "view_degree": 0,
+                            "occupancy_resolution": 0, "occupancy_decay": OCCUPANCY_DECAY, "view_degree": 0,
                             "distortion_weight": 0.0},
                            "a grid that follows the images' width: fast's up to 64 pixels; from 100, a "
                            "12-level hash grid (6 levels at 100-128 pixels) from 16 cells to half the width (up to "
@@ -342,7 +348,7 @@ class FieldConfig:
     occupancy_resolution: int = 0
     occupancy_threshold: float = 0.01
     occupancy_interval: int = 16
-    occupancy_decay: float = 0.95
+    occupancy_decay: float = OCCUPANCY_DECAY
     occupancy_warmup: int = 64
 
     def __post_init__(self):

@@ -134,8 +134,9 @@ class DatasetSource:
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.aabb_scale = None if aabb_scale is None else float(aabb_scale)
 
-    def field_options(self, config=None) -> dict:
-        """:class:`~mitsuba_active.field.FieldConfig` options the capture needs (over any ``config``):
+    def field_options(self, config=None, planner: bool = False) -> dict:
+        """:class:`~mitsuba_active.field.FieldConfig` options the capture needs (over any ``config``,
+        for either field):
         where its background lies beyond its box (:meth:`suggested_contraction` is not 0), a
         directional background (``background_resolution``), which lets the volume around the object
         stay empty; else none. The contraction itself is not chosen: from 20 views it filled the

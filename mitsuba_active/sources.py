@@ -84,14 +84,17 @@ class SceneSource:
         cands, held = scene_rigs(scene, rig, n_candidates, n_heldout, resolution, None, fov)
         return cls(scene, cands, held, spp=spp, cache_dir=cache_dir)
 
-    def field_options(self, config=None) -> dict:
+    def field_options(self, config=None, planner: bool = False) -> dict:
         """:class:`~mitsuba_active.field.FieldConfig` options the scene needs over
-        ``config`` (the run's, or None): a room's (:func:`~mitsuba_active.field.room.room_options`)
-        where it is one and most candidate cameras stand inside its box; else none."""
+        ``config`` (the run's, or None) of an evaluation field or (``planner``) the planner's
+        ensemble: a room's (:func:`~mitsuba_active.field.room.room_options`) where it is one and
+        most candidate cameras stand inside its box; else none."""
         if not self.scene.interior:
             return {}
-        return room_options(self.candidates, self.bbox_min, self.bbox_max,
-                            config.distance_weight if config is not None else 0.0)
+        if config is None:
+            return room_options(self.candidates, self.bbox_min, self.bbox_max, planner=planner)
+        finest = config.base_resolution * config.per_level_scale ** (config.n_levels - 1)
+        return room_options(self.candidates, self.bbox_min, self.bbox_max, config.distance_weight, planner, finest)
 
     def candidate_view(self, index: int) -> View:
         return self.groundtruth.render(self.candidates[index])

@@ -7,8 +7,10 @@ import pytest
 from .conftest import tiny_source
 from mitsuba_active.errors import UserError
 from mitsuba_active.field import Ensemble, FieldConfig
+from mitsuba_active.field.grid import GridLayout
 from mitsuba_active.field.samples import sample_along_rays
-from mitsuba_active.field.room import ROOM_DISTANCE_OPTIONS, ROOM_OPTIONS, cameras_inside
+from mitsuba_active.field.room import (ROOM_DISTANCE_OPTIONS, ROOM_OPTIONS, ROOM_PLANNER_OPTIONS, cameras_inside,
+                                       room_options)
 from mitsuba_active.run import RunConfig, source_field_config
 
 
@@ -32,9 +34,16 @@ def test_rooms_get_the_room_options_objects_do_not(shared_data, sphere_xml):
     assert cbox.field_options() == ROOM_OPTIONS
     ball = tiny_source(sphere_xml, n_candidates=6, n_heldout=2)
     assert ball.field_options() == {} and not cameras_inside(ball.candidates, ball.bbox_min, ball.bbox_max)
-    for planner in (True, False):  # the planner's ensemble and the evaluation field alike
+    # The evaluation field gets smooth levels up to what its images resolve, the planner's
+    # ensemble its two coarse ones.
+    for planner, options in ((True, ROOM_PLANNER_OPTIONS), (False, {**ROOM_OPTIONS, "n_levels": 2})):
         config = source_field_config(cbox, RunConfig(scene="x", resolution=16), planner)
-        assert all(getattr(config, k) == v for k, v in ROOM_OPTIONS.items())
+        assert all(getattr(config, k) == v for k, v in options.items())
+    assert ROOM_OPTIONS["smoothness_weight"] > 0 and "smoothness_weight" not in ROOM_PLANNER_OPTIONS
+    assert ball.field_options(planner=True) == {}
+    # With the distance loss the planner's ensemble takes the room's options but the smoothness.
+    config = source_field_config(cbox, RunConfig(scene="x", resolution=16, distance_weight=10.0), True)
+    assert config.smoothness_weight == 0 and config.view_degree == ROOM_DISTANCE_OPTIONS["view_degree"]
     # Trained on the distance maps too, a room gets the options that suit those.
     config = source_field_config(cbox, RunConfig(scene="x", resolution=16, distance_weight=10.0), False)
     assert config.near == ROOM_DISTANCE_OPTIONS.get("near", 0.0)
@@ -50,3 +59,13 @@ def test_rooms_get_the_room_options_objects_do_not(shared_data, sphere_xml):
     mine = {"n_levels": 3, "near": 0.0}
     config = source_field_config(cbox, RunConfig(scene="x", resolution=16, field=mine))
     assert (config.n_levels, config.near) == (3, 0.0)
+
+
+def test_the_room_grid_is_dense_where_smoothness_needs_it():
+    """Every level of a room's evaluation field is stored dense, so its total variation covers them all."""
+    layout = GridLayout.from_config(FieldConfig.preset("default", width=128, **ROOM_OPTIONS))
+    assert all(layout.dense) and layout.resolutions == (16, 32, 64)
+    # Levels up to the finest that the preset gives the images, two at least, three at most.
+    cams = [type("Camera", (), {"position": np.zeros(3)})()]
+    levels = [room_options(cams, -np.ones(3), np.ones(3), finest=f)["n_levels"] for f in (16, 32, 64, 128)]
+    assert levels == [2, 2, 3, 3]

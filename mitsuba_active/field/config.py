@@ -269,6 +269,14 @@ class FieldConfig:
         optical depth of each ray's first samples in the box): density
         right in front of the training cameras is what few views fit with
         floaters; 0 (the default) disables it.
+    smoothness_weight:
+        Weight of a total-variation prior on the grid (Plenoxels'): the
+        mean over the vertices of each dense level, and the three axes, of
+        the squared difference of a vertex's 4 features from its neighbour's,
+        summed over the dense levels (hashed levels have no neighbours to
+        compare). Without a network between the grid and the colours,
+        nothing else ties a vertex to the ones beside it; 0 (the default)
+        disables it.
     occlusion_fraction:
         The leading fraction of a ray's samples (of its length in the box)
         that the occlusion penalty covers (at least one sample), in (0, 1].
@@ -341,6 +349,7 @@ class FieldConfig:
     empty_weight: float = 0.0
     distortion_weight: float = 0.0
     occlusion_weight: float = 0.0
+    smoothness_weight: float = 0.0
     occlusion_fraction: float = 0.1
     random_background: int = 0
     view_degree: int = 0
@@ -364,7 +373,7 @@ class FieldConfig:
         # would climb the loss without any error).
         positive = ("per_level_scale", "lr", "epsilon")
         non_negative = ("init_scale", "bbox_padding", "near", "lr_background", "distance_weight", "empty_weight",
-                        "distortion_weight", "occlusion_weight")
+                        "distortion_weight", "occlusion_weight", "smoothness_weight")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise UserError(f"FieldConfig.{name} must be > 0, got {getattr(self, name)}")

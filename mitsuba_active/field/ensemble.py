@@ -34,7 +34,7 @@ from .grid import GridLayout, anneal_weights, half_table, init_grid
 from .inputs import checked_rays, point, triples
 from .io import load_ensemble, save_ensemble
 from .occupancy import cell_opacity
-from .regularisers import random_background, ray_regularisers
+from .regularisers import grid_smoothness, random_background, ray_regularisers
 from .render import render_members
 from .samples import FieldParams, hash_u32, uniform_from_u32
 from .sky import sky_size
@@ -439,6 +439,8 @@ class Ensemble:
         loss = mse + regulariser
         if reg is not None:
             loss = loss + 1.0 / N * dr.sum(sum(weighted(out, out["regulariser"]) for out in outs))
+        if cfg.smoothness_weight > 0:
+            loss = loss + float(cfg.smoothness_weight) * grid_smoothness(self._opt["grid"], self.layout, self.n_members)
         dw, ew = float(cfg.distance_weight), float(cfg.empty_weight)
         if ew > 0:
             # Rays that meet nothing should see the background colour, not
@@ -513,9 +515,9 @@ class Ensemble:
                 if bar is not None:
                     bar.close()
                 # Large loss weights diverge as a large learning rate does: name those set.
-                weights = [f"{n} = {getattr(self.config, n):g}" for n in ("distance_weight", "empty_weight",
-                                                                           "distortion_weight", "occlusion_weight")
-                           if getattr(self.config, n) > 0]
+                names = ("distance_weight", "empty_weight", "distortion_weight", "occlusion_weight",
+                         "smoothness_weight")
+                weights = [f"{n} = {getattr(self.config, n):g}" for n in names if getattr(self.config, n) > 0]
                 lower = "FieldConfig.lr" + (f" or the loss weights ({', '.join(weights)})" if weights else "")
                 raise TrainingDiverged(f"training diverged at step {self._step} (loss {value}); lower {lower} "
                                        "and start from a new ensemble (this one's parameters are no longer finite)")

@@ -1,4 +1,4 @@
-"""Few-view regularisers of a training render: distortion, near-camera occlusion, random backgrounds.
+"""Few-view regularisers of a training render: distortion, near-camera occlusion, random backgrounds, grid smoothness.
 
 Per ray of S samples with weights ``w_i``, distances ``t_i`` (sorted) and
 optical depths ``tau_i``:
@@ -13,6 +13,11 @@ optical depths ``tau_i``:
 * FreeNeRF's occlusion penalty: the optical depth of the ray's first
   ``M`` samples in the box, ``sum_(i<M) tau_i`` (density there, in front of
   every training camera, is what few views fit with floaters).
+
+and of the grid itself, the total variation of Plenoxels: the mean over a
+dense level's vertices and the three axes of ``|f(v + e_a) - f(v)|^2`` (the
+4 features of a vertex; pairs that leave the level count as 0), summed
+over the dense levels (:func:`grid_smoothness`).
 
 The marched compositing (:class:`.march._MarchedComposite`) computes their
 weighted sum as a fourth output with closed-form derivatives;
@@ -65,6 +70,66 @@ def blocked_regulariser(w, tau, t, delta, S: int, reg: tuple):
     per = dw * w * (2.0 * (m * before_w - before_x) + w * (1.0 / (3 * S)))
     per = per + ow * dr.select(k < M, tau, 0.0)
     return dr.block_sum(per, S)
+
+
+def _dense_levels(layout, n_members: int):
+    """Per dense level: (its vertices' and members' first float in the table,
+    vertices per axis ``n``, the (vertex, member) pairs' ``i``, and each
+    pair's vertex coordinates (x, y, z))."""
+    K = int(n_members)
+    for r, off, dense in zip(layout.resolutions, layout.offsets, layout.dense):
+        if dense:
+            n = int(r) + 1
+            i = dr.arange(mi.UInt32, n ** 3 * K)
+            v = i // K
+            yield off * K, n, i, (v % n, (v // n) % n, v // (n * n))
+
+
+class _GridSmoothness(dr.CustomOp):
+    """:func:`grid_smoothness` with its gradient in closed form: a vertex's is
+    ``2 sum_a (2 f(v) - f(v + e_a) - f(v - e_a)) / (3 n^3)`` over the
+    neighbours it has, gathered per vertex and written once, where Dr.Jit's
+    own adjoint of the gathers would add them with atomics."""
+
+    def eval(self, grid, layout, n_members):
+        self.grid, self.layout, self.K = grid, layout, int(n_members)
+        total = mi.Float(0.0)
+        for first, n, i, coords in _dense_levels(layout, n_members):
+            a = dr.gather(mi.Vector4f, grid, i + first)
+            for stride, c in zip((1, n, n * n), coords):
+                inside = c < n - 1
+                b = dr.gather(mi.Vector4f, grid, i + first + stride * self.K, inside)
+                total += dr.sum(dr.select(inside, dr.squared_norm(b - a), 0.0)) * (1.0 / (3 * n ** 3))
+        return total
+
+    def backward(self):
+        g = self.grad_out()
+        out = dr.zeros(mi.Float, dr.width(self.grid))
+        for first, n, i, coords in _dense_levels(self.layout, self.K):
+            a = dr.gather(mi.Vector4f, self.grid, i + first)
+            lap = mi.Vector4f(0.0)
+            for stride, c in zip((1, n, n * n), coords):
+                step = stride * self.K
+                for there, ok in ((i + first + step, c < n - 1), (i + first - step, c > 0)):
+                    lap += dr.select(ok, a - dr.gather(mi.Vector4f, self.grid, there, ok), 0.0)
+            dr.scatter(out, lap * (g * (2.0 / (3 * n ** 3))), i + first)
+        self.set_grad_in("grid", out)
+
+    def name(self):
+        return "grid_smoothness"
+
+
+def grid_smoothness(grid, layout, n_members: int):
+    """The grid's total variation (see the module docstring), summed over members.
+
+    Args:
+        grid: the table (``mi.Float``, ``n_entries * n_members * 4``, laid out
+            ``[entry][member][channel]``; differentiable).
+        layout: its :class:`.grid.GridLayout`; hashed levels are left out.
+    Returns:
+        ``mi.Float`` scalar (0 when no level is dense).
+    """
+    return dr.custom(_GridSmoothness, grid, layout, int(n_members))
 
 
 def random_background(params, rays: dict, idx, target, outs: list, seed: int, step: int):

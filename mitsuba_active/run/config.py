@@ -210,11 +210,12 @@ def field_config(cfg: RunConfig, planner: bool = True, width: int | None = None)
 
 def source_field_config(source, cfg: RunConfig, planner: bool = True):
     """:func:`field_config` for the source's images, with the options the source asks for
-    (``source.field_options(config)``, where it has one) under those the run sets; also UserError when
-    the source cannot train such a field."""
+    (``source.field_options(config, planner=planner)``, where it has one) under those the run
+    sets; also UserError when the source cannot train such a field."""
     config = field_config(cfg, planner, width=source.candidates[0].width)
     # What the scene needs (a capture's contraction, a room's settings), under the run's own field options.
-    needs = {k: v for k, v in getattr(source, "field_options", lambda _: {})(config).items() if k not in cfg.field}
+    asks = getattr(source, "field_options", None)
+    needs = {k: v for k, v in (asks(config, planner=planner) if asks else {}).items() if k not in cfg.field}
     config = type(config)(**{**config.to_dict(), **needs}) if needs else config
     if config.distance_weight > 0 and not has_distances(source):
         raise UserError(f"distance_weight (--distance-weight) needs distances, and {source.name} has no depth maps "

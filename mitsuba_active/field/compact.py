@@ -18,7 +18,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .grid import accumulate, query
+from .grid import accumulate
 from .march import _MarchedGrid
 from .occupancy import occupied
 from .samples import sample_along_rays
@@ -98,11 +98,6 @@ class _CompactMarchedGrid(_MarchedGrid):
         g = dr.gather(self.XF, self.grads, dr.arange(mi.UInt32, n), shape=(4 * self.K, n))
         accumulate(self.table_grads, layout, n_members, u, [g[c] for c in range(4 * self.K)], member, True)
         self.set_grad_in("grid", self.table_grads)
-
-    def forward(self):
-        layout, n_members, u, member, active = self.lookup
-        d_raws = query(self.grad_in("grid"), layout, n_members, u, member, active)
-        self._march_tangents(d_raws if member is None else [d_raws])
 
     def name(self):
         return "composite_marched_compact"

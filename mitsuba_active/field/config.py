@@ -314,7 +314,8 @@ class FieldConfig:
         Near 1 a cell that was foggy early on stays occupied, and costs its
         lookups, long after its density has gone; the default (0.95,
         Instant-NGP's) keeps it about 90 refreshes. The ``default`` preset's
-        evaluation field forgets within about 7 (0.5): on the bundled
+        evaluation field at 100-128 pixels forgets within about 7 (0.5,
+        :data:`OCCUPANCY_DECAY_BY_FINEST`): on the bundled
         scene at 128 px its 1,500 steps took 0.62 times as long at 0.03 dB
         less held-out PSNR (docs/field-measurements.md).
     occupancy_warmup:

@@ -916,6 +916,17 @@ def test_ctrl_c_while_libraries_load_is_one_line(tmp_path, module, importer):
     assert proc.stdout == ""
 
 
+def test_ctrl_c_while_a_commands_module_loads_is_one_line_and_exit_130(tmp_path):
+    """The group imports a command's module when the command runs: Ctrl-C there is held back until the
+    import ends, then stops the command as it does inside one."""
+    script = (_signal_on_import("mitsuba_active.bench", "SIGINT")
+              + "from mitsuba_active.cli import main\nmain(['bench', '--help'], prog_name='mitsuba-active')\n")
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, cwd=tmp_path,
+                          env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
+    assert proc.returncode == 130 and proc.stderr == "mitsuba-active: interrupted\n", proc.stderr
+    assert proc.stdout == ""
+
+
 def test_a_command_runs_with_stderr_closed(tmp_path, spot_xml):
     """Started with ``2>&-`` (no stderr at all), its progress bars have nowhere to go: it still runs."""
     import shlex

@@ -31,6 +31,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import platform
 import statistics
 import sys
 import time
@@ -38,7 +40,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import mitsuba_active  # noqa: E402,F401
+import mitsuba_active  # noqa: E402,F401  (first: it finds LLVM before Dr.Jit loads)
+import mitsuba as mi  # noqa: E402
 
 from mitsuba_active.bench.jobs import finished_record, plan_jobs, run_job  # noqa: E402
 from mitsuba_active.bench.stats import metric_at  # noqa: E402
@@ -176,7 +179,7 @@ def main() -> None:
         "diameters": args.diameters, "cost_weight": args.cost_weight, "max_views": args.max_views,
         "views": args.views, "scene_diameters": diameters, "runs": results, "means": means,
         "comparisons": comparisons, "seconds": seconds,
-        "machine": "2-core machine, llvm_ad_rgb, shared with other work"}, indent=1) + "\n")
+        "machine": platform.machine(), "cpus": os.cpu_count(), "variant": mi.variant()}, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ from typing import Protocol
 import numpy as np
 
 from .cameras import Camera
+from .field.grid import GridLayout
 from .field.room import room_options
 from .groundtruth import GroundTruth, View
 from .rigs import check_disjoint, scene_rigs
@@ -93,7 +94,7 @@ class SceneSource:
             return {}
         if config is None:
             return room_options(self.candidates, self.bbox_min, self.bbox_max, planner=planner)
-        finest = config.base_resolution * config.per_level_scale ** (config.n_levels - 1)
+        finest = GridLayout.from_config(config).resolutions[-1]
         return room_options(self.candidates, self.bbox_min, self.bbox_max, config.distance_weight, planner, finest)
 
     def candidate_view(self, index: int) -> View:

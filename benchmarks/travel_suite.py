@@ -7,7 +7,10 @@ candidates, 20 held-out views) in these configurations:
 * ``rfe``: RFE, cost-blind, under a travel budget of ``--diameters`` scene
   diameters (the scene's bounding-box diagonal, as the travel cost uses);
 * ``rfe-cost``: the same with ``--cost-weight`` (λ);
-* ``even``: ``even`` under the same budget;
+* ``even``: ``even`` under the same budget, one view a round;
+* ``even-tour``: ``even`` drawing all its views at once (a batch of
+  ``--max-views``) and visiting them in a short tour, nearest first: the
+  cost-aware form of a planner that has no scores to weigh;
 * ``rfe-pool``: RFE on the pool of candidates, ``--views`` views, no travel budget;
 * ``rfe-continuous``: the same with continuous candidates.
 
@@ -50,7 +53,7 @@ from mitsuba_active.scene import load_scene  # noqa: E402
 from mitsuba_active.travel import diameter_of  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-TRAVEL_CONFIGS = ("rfe", "rfe-cost", "even")
+TRAVEL_CONFIGS = ("rfe", "rfe-cost", "even", "even-tour")
 VIEW_CONFIGS = ("rfe-pool", "rfe-continuous")
 CONFIGS = TRAVEL_CONFIGS + VIEW_CONFIGS
 METRICS = ("psnr", "psnr_fg")
@@ -62,7 +65,9 @@ def config_overrides(name: str, args, travel_budget: float) -> tuple[str, dict]:
     if name in TRAVEL_CONFIGS:
         settings = {**common, "budget": args.max_views, "travel_budget": round(travel_budget, 6),
                     "cost_weight": args.cost_weight if name == "rfe-cost" else 0.0}
-        return ("even" if name == "even" else "rfe"), settings
+        if name == "even-tour":
+            settings["batch"] = args.max_views
+        return ("even" if name.startswith("even") else "rfe"), settings
     mode = "continuous" if name == "rfe-continuous" else "pool"
     return "rfe", {**common, "budget": args.views, "candidates_mode": mode}
 
@@ -164,7 +169,8 @@ def main() -> None:
              for n in configs]
     lines.append(f"| mean | {' | '.join(cells)} |")
     comparisons = {}
-    for a, b in (("rfe-cost", "rfe"), ("rfe-cost", "even"), ("rfe", "even"), ("rfe-continuous", "rfe-pool")):
+    for a, b in (("rfe-cost", "rfe"), ("rfe-cost", "even"), ("rfe-cost", "even-tour"), ("rfe", "even"),
+                 ("rfe-continuous", "rfe-pool")):
         if any(a in row and b in row for row in results.values()):
             comparisons[f"{a} - {b}"] = {m: paired(results, a, b, m) for m in (*METRICS, "psnr@10", "views")}
     print("\nheld-out PSNR / foreground PSNR (dB) (views, travel in scene units); travel configurations at the "

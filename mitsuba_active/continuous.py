@@ -10,7 +10,17 @@ component along up and ``phi`` its azimuth; its camera looks at the centre
 with the pool's intrinsics. Samples are uniform over the band's area. A
 ground robot keeps its camera's height: its poses are on the ellipse where
 the surface meets its plane. Poses out of the embodiment's reach, inside
-the geometry, or at a held-out view's place are dropped.
+the geometry, or at a held-out view's place are dropped, and so are those
+nearer a captured view than the pool's cameras are to each other (its
+median nearest-neighbour angle), as near as the pool's own candidates come.
+
+A planner's score of a pose is an estimate from a few hundred rays, and a
+noisy one: the best of many such scores is largely the luckiest draw. So
+a round's first look (the fresh sample, scored as pool candidates are)
+only shortlists; its best few and perturbations around them are scored
+again on two fresh draws of pixels, the same pixels for all of them, and a
+perturbation replaces its pose only where its lead passes the noise that
+the two draws' disagreement shows.
 """
 
 from __future__ import annotations
@@ -18,9 +28,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.stats import norm
 
-from .cameras import Camera, look_at
-from .planners.base import PlanningState, unseen
+from .cameras import Camera, camera_rays, camera_valid, look_at
+from .planners.base import PlanningState, greedy_top, unseen
 from .training import sparse_candidate_rays
 
 #: Draws per wanted pose before the unreachable ones are dropped.
@@ -28,6 +39,11 @@ OVERSAMPLE = 4
 #: Perturbations of a pose, and their spread as a share of the pool's angular spacing.
 PERTURBATIONS = 6
 PERTURB_SHARE = 0.5
+#: The chance that noise alone lets some near pose replace a pose of the second look (the leads'
+#: threshold is set for it over all the near poses compared).
+FALSE_LEAD = 0.1
+#: The first look's best poses (at least the batch) that the second look scores again, with the poses near them.
+SECOND_LOOK = 4
 
 
 def looked_at(cameras: list[Camera]) -> np.ndarray:
@@ -66,10 +82,19 @@ class RigSurface:
         self.e2 = np.cross(self.up, self.e1)
         #: Radians between neighbouring pool cameras on the unit sphere (the band's area over the pool).
         self.spacing = math.sqrt(2 * math.pi * max(self.band[1] - self.band[0], 1e-3) / len(pool))
+        #: Radians: the median angle from a pool camera to its nearest neighbour (on the unit surface).
+        cos = np.clip(units @ units.T, -1.0, 1.0)
+        np.fill_diagonal(cos, -1.0)
+        self.gap = float(np.median(np.arccos(cos.max(axis=1))))
 
     @staticmethod
     def _unit(v):
         return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-300)
+
+    def angles(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """(N, M) radians between the surface directions of points ``a`` (N, 3) and ``b`` (M, 3)."""
+        ua, ub = (self._unit((np.asarray(x, dtype=np.float64) - self.centre) / self.axes) for x in (a, b))
+        return np.arccos(np.clip(ua @ ub.T, -1.0, 1.0))
 
     def positions(self, t: np.ndarray, phi: np.ndarray) -> np.ndarray:
         """(N, 3) scene units: the surface's points at band coordinates ``t``, ``phi`` (N,)."""
@@ -109,7 +134,7 @@ class PoseSampler:
         height = getattr(self.embodiment, "height", None)
         return None if height is None else self.surface.height_t(height)
 
-    def _keep(self, t, phi, n) -> list[Camera]:
+    def _keep(self, t, phi, n, avoid=None) -> list[Camera]:
         points = self.surface.positions(t, phi)
         height = getattr(self.embodiment, "height", None)
         if height is not None:  # exactly in the base's plane
@@ -120,20 +145,30 @@ class PoseSampler:
         if len(self.heldout):
             gaps = np.linalg.norm(points[:, None] - self.heldout[None], axis=2).min(axis=1)
             ok &= gaps > self.apart
+        if avoid is not None and len(avoid) and ok.any():
+            # The pool's gap from the captured views; nearer only where no pose is that far.
+            near = self.surface.angles(points, avoid).min(axis=1)
+            for floor in self.surface.gap * 0.5 ** np.arange(4):
+                if (ok & (near >= floor)).any():
+                    ok &= near >= floor
+                    break
         return [self.surface.camera(p) for p in points[ok][:n]]
 
-    def sample(self, rng: np.random.Generator, n: int) -> list[Camera]:
-        """Up to ``n`` poses drawn uniformly over the band's area (fewer where few are reachable)."""
+    def sample(self, rng: np.random.Generator, n: int, avoid: np.ndarray | None = None) -> list[Camera]:
+        """Up to ``n`` poses drawn uniformly over the band's area (fewer where few are reachable), at
+        least the pool's gap from the captured positions ``avoid`` (K, 3) where any are."""
         m = OVERSAMPLE * n
         lo, hi = self.surface.band
         fixed = self._fixed_t()
         if fixed is None and getattr(self.embodiment, "height", None) is not None:
             return []  # the ground robot's plane misses the rig
         t = np.full(m, fixed) if fixed is not None else rng.uniform(lo, hi, m)
-        return self._keep(t, rng.uniform(0, 2 * np.pi, m), n)
+        return self._keep(t, rng.uniform(0, 2 * np.pi, m), n, avoid)
 
-    def around(self, camera: Camera, rng: np.random.Generator, n: int = PERTURBATIONS) -> list[Camera]:
-        """Up to ``n`` poses near ``camera``'s on the surface (a ground robot's: in its plane)."""
+    def around(self, camera: Camera, rng: np.random.Generator, n: int = PERTURBATIONS,
+               avoid: np.ndarray | None = None) -> list[Camera]:
+        """Up to ``n`` poses near ``camera``'s on the surface (a ground robot's: in its plane), apart
+        from ``avoid`` as :meth:`sample`'s are."""
         s = self.surface
         u = s._unit((camera.position - s.centre) / s.axes)
         t0, phi0 = float(u @ s.up), math.atan2(float(u @ s.e2), float(u @ s.e1))
@@ -143,7 +178,17 @@ class PoseSampler:
         t = (np.full(m, fixed) if fixed is not None else
              np.clip(t0 + sigma * math.sqrt(max(1 - t0 ** 2, 0.0)) * rng.standard_normal(m), *s.band))
         phi = phi0 + sigma / max(math.sqrt(max(1 - t0 ** 2, 0.0)), 0.1) * rng.standard_normal(m)
-        return self._keep(t, phi, n)
+        return self._keep(t, phi, n, avoid)
+
+
+def common_rays(cameras: list[Camera], n_rays: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """The same ``n_rays`` pixels of each camera (they share the pool's intrinsics): origins and
+    directions, (C, R, 3) each, so that near poses differ in their scores by their views, not their draws."""
+    valid = camera_valid(cameras[0])
+    pixels = np.flatnonzero(valid)
+    idx = pixels[rng.choice(len(pixels), size=n_rays, replace=n_rays > len(pixels))]
+    rays = [camera_rays(c) for c in cameras]
+    return np.stack([o[idx] for o, _ in rays]), np.stack([d[idx] for _, d in rays])
 
 
 def choose_among(planner, journey, state: PlanningState, shown_first: list[Camera], offers: list[Camera],
@@ -161,25 +206,74 @@ def choose_among(planner, journey, state: PlanningState, shown_first: list[Camer
     return picks, scores
 
 
+def refined_scores(planner, state: PlanningState, taken: list[Camera], captured: list[int],
+                   parents: list[Camera], near: list[Camera], owner: list[int], rng: np.random.Generator, cfg):
+    """(P + N,) scores of the ``parents`` (P) and the poses ``near`` them (N; ``owner`` (N,): each one's
+    parent): the mean of two fresh draws of common pixels (:func:`common_rays`). One pose per parent
+    keeps its score, the others are NaN: its best near pose whose lead over it passes the threshold
+    that noise alone (its size read from how the two draws disagree on the leads) would pass in
+    :data:`FALSE_LEAD` of rounds over the N leads compared; else the parent itself."""
+    cams = list(taken) + list(parents) + list(near)
+    draws = []
+    for _ in range(2):
+        shown = PlanningState(cams, list(captured), state.ensemble, None, state.rng)
+        if planner.needs_ensemble:
+            shown.candidate_rays = common_rays(cams, cfg.rays_per_candidate, rng)
+        draws.append(np.asarray(planner.checked_select(shown, 1)[1], dtype=np.float64)[len(taken):])
+    a, b = draws
+    p, up = len(parents), np.asarray(owner, dtype=np.int64)
+    mean = (a + b) / 2
+    lead_a, lead_b = a[p:] - a[up], b[p:] - b[up]  # (N,) each draw's lead of a near pose over its parent
+    # A draw's lead has variance mean((lead_a - lead_b)^2) / 2; the mean of two, half that.
+    noise = math.sqrt(float(np.mean((lead_a - lead_b) ** 2)) / 4) if len(lead_a) else 0.0
+    sigmas = float(norm.isf(FALSE_LEAD / max(len(lead_a), 1)))
+    better = np.flatnonzero(np.isfinite(lead_a + lead_b) & ((lead_a + lead_b) / 2 > sigmas * noise))
+    keep = np.arange(p)
+    for k in range(p):
+        mine = better[up[better] == k]
+        if len(mine):
+            keep[k] = p + mine[np.argmax(mean[p + mine])]
+    out = np.full(len(mean), np.nan)
+    out[keep] = mean[keep]
+    return out
+
+
 def choose_fresh(planner, journey, sampler: PoseSampler, state: PlanningState, owners: list[int],
                  taken: list[Camera], batch: int, rng: np.random.Generator, cfg):
     """One round of continuous candidates: the planner scores ``cfg.candidates`` fresh poses with the
     views captured (``taken``: the cameras of the distinct run indices ``owners``), then, where it
-    scores, perturbations around its picks with them.
+    scores, its picks and next best (:data:`SECOND_LOOK` in all) again, and perturbations around them,
+    which replace a pose only where they beat it (:func:`refined_scores`); the picks are the best
+    of that second look. Fresh and perturbed poses keep the pool's gap from the captured views.
 
     Returns ``(chosen, scores)``: each pick a run index of ``owners`` (a view again) or a new
     :class:`~mitsuba_active.cameras.Camera`; ``chosen`` is None when no pose is reachable."""
-    offers = sampler.sample(rng, cfg.candidates)
+    avoid = np.stack([c.position for c in taken]) if taken else None
+    offers = sampler.sample(rng, cfg.candidates, avoid)
     if not offers:
         return None, None
     where = {i: k for k, i in enumerate(owners)}
     captured = [where[i] for i in state.captured]
     picks, scores = choose_among(planner, journey, state, taken, offers, captured, batch, cfg)
     shown = list(taken) + offers
-    if scores is not None:  # a second look, around the picks
-        chosen = [shown[i] for i in picks if i >= len(taken)]
-        near = [c for cam in chosen for c in sampler.around(cam, rng)]
-        if near:
-            shown = list(taken) + chosen + near
-            picks, scores = choose_among(planner, journey, state, taken, chosen + near, captured, batch, cfg)
+    if scores is None:
+        return [owners[i] if i < len(taken) else shown[i] for i in picks], scores
+    # A second look at the first look's picks and next best, and around them, scored on fresh pixels:
+    # a pose's first score chose it, so it is biased upwards (more so the more poses were scored).
+    fresh = np.r_[np.zeros(len(taken), bool), np.ones(len(offers), bool)] & ~np.isnan(scores)
+    best = greedy_top(scores, fresh, min(max(batch, SECOND_LOOK), int(fresh.sum())))
+    parents = [shown[i] for i in dict.fromkeys([i for i in picks if i >= len(taken)] + best)]
+    parents = parents[:max(batch, SECOND_LOOK)]
+    near, owner = [], []
+    for k, cam in enumerate(parents):
+        around = sampler.around(cam, rng, avoid=avoid)
+        near += around
+        owner += [k] * len(around)
+    shown = list(taken) + parents + near
+    scores = np.r_[np.full(len(taken), np.nan),
+                   refined_scores(planner, state, taken, captured, parents, near, owner, rng, cfg)]
+    allowed = np.r_[np.zeros(len(taken), bool), np.ones(len(shown) - len(taken), bool)]
+    picks = greedy_top(scores, allowed, min(batch, len(parents)))
+    picks = journey.weigh(picks, scores, allowed & ~np.isnan(scores), positions=np.stack([c.position for c in shown]),
+                          views=np.stack([c.forward for c in shown]))
     return [owners[i] if i < len(taken) else shown[i] for i in picks], scores

@@ -109,9 +109,10 @@ def _permuted(values, index):
 class _CompactMarchedGrid(_MarchedGrid):
     """:class:`.march._MarchedGrid` over compacted samples (see the module
     docstring): ray ``r``'s march reads samples ``first[r]`` to
-    ``first[r] + count[r] - 1``; the backward march stores each sample's
-    gradient, and one kernel adds them to the grid corners of the occupied
-    samples alone. Lane ``l`` marches ray ``order[l]`` (:func:`lanes_by_count`):
+    ``first[r] + count[r] - 1``; the backward march adds each sample's
+    gradient straight to its grid corners (no lane is left with skipped
+    samples to trace corners for, and none waits long for the others: the
+    lanes go by count). Lane ``l`` marches ray ``order[l]`` (:func:`lanes_by_count`):
     the outputs and their gradients are put back in ray order."""
 
     def eval(self, grid, raws, lookup, t, first, count, k, delta, S, density_bias, inv_diag, reg=None):
@@ -138,16 +139,14 @@ class _CompactMarchedGrid(_MarchedGrid):
         return dr.gather(mi.UInt32, self.k, j) < self.reg[2]
 
     def _write_gradients(self, j, grads, valid):
-        dr.scatter(self.grads, self.XF(*grads), j)
+        layout, n_members, u, member, _ = self.lookup
+        if member is not None and dr.width(member) > 1:
+            member = dr.gather(mi.UInt32, member, j)
+        accumulate(self.table_grads, layout, n_members, dr.gather(mi.Point3f, u, j), grads, member, True)
 
     def backward(self):
-        layout, n_members, u, member, _ = self.lookup
-        n = dr.width(self.t)
         self.table_grads = dr.zeros(mi.Float, self.grid_width)
-        self.grads = dr.empty(mi.Float, 4 * self.K * n)  # the march writes every sample
         self._march_gradients()
-        g = dr.gather(self.XF, self.grads, dr.arange(mi.UInt32, n), shape=(4 * self.K, n))
-        accumulate(self.table_grads, layout, n_members, u, [g[c] for c in range(4 * self.K)], member, True)
         self.set_grad_in("grid", self.table_grads)
 
     def name(self):

@@ -68,30 +68,6 @@ def test_new_rays_reset_the_occupancy():
     assert ens.occupancy() is not None
 
 
-def test_the_warm_up_marches_the_samples_in_the_box_as_marching_all_would(monkeypatch):
-    """While the grid warms up, the renders skip by a grid of every cell (the compacted
-    march, which drops the samples outside the box): the losses and renders of marching
-    every sample, to rounding."""
-    train = views(FOUR_SIDES[:2], width=16, height=16)
-    o, d, _, _, _ = views([[1.5, 1.0, 1.5]], width=8, height=8)
-
-    def run():
-        ens = Ensemble(*BOX, n_members=2, config=tiny_config(**SKIPPING), seed=0)
-        ens.set_rays(*train)
-        losses = ens.train(20)
-        assert ens.occupancy() is None
-        return losses, ens.render(o, d)["rgb"], ens.params().occupancy
-
-    losses, rgb, cells = run()
-    assert cells is not None and np.array(cells).all()
-    with monkeypatch.context() as m:
-        m.setattr(Ensemble, "_skipped_by", lambda self: self._occupied)
-        losses_all, rgb_all, cells_all = run()
-    assert cells_all is None
-    np.testing.assert_allclose(losses, losses_all, rtol=1e-4)
-    np.testing.assert_allclose(rgb, rgb_all, rtol=1e-4, atol=1e-5)
-
-
 def test_a_warm_up_of_zero_builds_the_grid_after_the_first_step():
     ens = Ensemble(*BOX, n_members=1, config=tiny_config(**dict(SKIPPING, occupancy_warmup=0)), seed=0)
     ens.set_rays(*views(FOUR_SIDES[:1], width=8, height=8))

@@ -172,7 +172,7 @@ class Ensemble:
                            layout=self._annealed_layout(), box_min=self.box_min, box_max=self.box_max,
                            n_samples=int(cfg.n_samples),
                            density_bias=float(cfg.density_bias),
-                           n_members=self.n_members, occupancy=self._skipped_by(),
+                           n_members=self.n_members, occupancy=self._occupied,
                            occupancy_resolution=int(cfg.occupancy_resolution),
                            view=self._opt["view"] if cfg.view_degree > 0 else None,
                            view_degree=int(cfg.view_degree), view_resolution=int(cfg.view_resolution),
@@ -344,20 +344,6 @@ class Ensemble:
         self._occupancy = None  # decaying max of cell opacities (mi.Float G^3)
         self._occupied = None  # occupancy > threshold (mi.Bool G^3)
         self._occupancy_age = 0  # training steps since the reset
-        self._every_cell = None  # all cells occupied (mi.Bool G^3), made once needed
-
-    def _skipped_by(self):
-        """The occupied cells the renders skip by (``mi.Bool`` G^3, or None
-        without skipping). While the grid warms up, every cell: the
-        compacted march then drops only the samples outside the box, to the
-        same result as marching all of them and at less cost."""
-        G = int(self.config.occupancy_resolution)
-        if self._occupied is not None or G <= 0:
-            return self._occupied
-        if self._every_cell is None:
-            self._every_cell = dr.full(mi.Bool, True, G ** 3)
-            dr.eval(self._every_cell)  # the samples gather from it
-        return self._every_cell
 
     def _refresh_occupancy(self):
         """Fold the current fields' cell opacities into the grid."""

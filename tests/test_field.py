@@ -20,6 +20,7 @@ from mitsuba_active.field.variational import VariationalField
 from mitsuba_active.field.config import FIELD_PRESETS
 from mitsuba_active.field.march import composite, composite_marched
 from mitsuba_active.field.render import render_flat
+from mitsuba_active.field import samples
 from mitsuba_active.field.samples import field_at
 
 BOX = ([-0.7] * 3, [0.7] * 3)
@@ -931,3 +932,26 @@ def test_the_fast_preset_with_a_view_dependent_colour_fits_a_glossy_ball_better(
         errors[degree] = np.mean((ens.predict(held_o, held_d)["rgb_mean"] - held_rgb) ** 2)
     # Measured: 0.8 dB lower error with the residual (mean squared error 1.21e-3 against 1.46e-3).
     assert errors[1] < 0.93 * errors[0], errors
+
+
+def test_samples_read_their_rays_packed_as_gathered_one_by_one(monkeypatch):
+    """sample_along_rays reads each ray's entry, exit, origin and direction with one packet
+    gather (samples._per_ray): every sample is what gathering them one by one gives, for
+    rays of their own origins and for one origin shared by all, every sample or some."""
+    rng = np.random.default_rng(0)
+    params = Ensemble(*BOX, n_members=1, config=tiny_config(n_samples=16), seed=0).params()
+    d = rng.normal(size=(3, 50))
+    d = mi.Vector3f((d / np.linalg.norm(d, axis=0)).astype(np.float32))
+    jitter = mi.Float(rng.uniform(size=50 * 16).astype(np.float32))
+    index = mi.UInt32(np.sort(rng.choice(50 * 16, 300, replace=False)).astype(np.uint32))
+    cases = [(mi.Point3f((rng.normal(size=(3, 50)) * 3).astype(np.float32)), jitter, None),
+             (mi.Point3f(0.1, 0.2, 3.0), None, None),
+             (mi.Point3f((rng.normal(size=(3, 50)) * 3).astype(np.float32)), dr.gather(mi.Float, jitter, index), index)]
+    packed = [samples.sample_along_rays(o, d, params, j, index=i) for o, j, i in cases]
+    monkeypatch.setattr(samples, "_per_ray", lambda values, R, ray: tuple(
+        dr.gather(type(v), v, ray) if dr.width(v) > 1 else v for v in values))
+    for (o, j, i), got in zip(cases, packed):
+        want = samples.sample_along_rays(o, d, params, j, index=i)
+        assert np.array(want["valid"]).any() and not np.array(want["valid"]).all()
+        for key in ("t", "delta", "u", "valid"):
+            np.testing.assert_array_equal(np.array(got[key]), np.array(want[key]), err_msg=key)

@@ -8,7 +8,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mitsuba_active.errors import UserError
-from mitsuba_active.field import Ensemble, FieldConfig, render
+from mitsuba_active.field import Ensemble, FieldConfig, compact, render
 from mitsuba_active.field.regularisers import ray_regularisers
 from mitsuba_active.field.render import render_flat, render_members
 from mitsuba_active.rigs import fibonacci_directions
@@ -229,3 +229,36 @@ def test_the_occupancy_forgets_at_its_decay():
     for bad in (0.0, 1.5):
         with pytest.raises(UserError, match="occupancy_decay"):
             tiny_config(occupancy_decay=bad)
+
+
+def test_the_rays_march_in_order_of_their_counts_with_the_same_results(monkeypatch):
+    """compact.lanes_by_count puts the rays in order of their occupied samples; marching them
+    in that order gives the outputs and derivatives of marching them in their own order."""
+    count = mi.UInt32([3, 0, 5, 3, 1, 0, 5, 2])
+    order, place = compact.lanes_by_count(count, 5)
+    order, place = np.array(order), np.array(place)
+    np.testing.assert_array_equal(np.sort(order), np.arange(8))
+    assert (np.diff(np.array(count)[order]) >= 0).all()
+    np.testing.assert_array_equal(order[place], np.arange(8))
+    rng = np.random.default_rng(1)
+    cfg = tiny_config(n_samples=16, distortion_weight=0.01, occlusion_weight=0.1, density_bias=0.0, init_scale=2.0)
+    ens = Ensemble(*BOX, n_members=2, config=cfg, seed=1)
+    o, d = camera_rays([0.3, 0.4, 2.5], width=8, height=8)
+    o, d = mi.Point3f(o.T), mi.Vector3f(d.T)
+    jitter = mi.Float(rng.uniform(size=64 * 16).astype(np.float32))
+    mask = mi.Bool(rng.uniform(size=8 ** 3) < 0.4)
+
+    def params_of():
+        p = ens.params()
+        p.grid = mi.Float(np.array(dr.detach(p.grid)))
+        p.half_grid = None
+        p.occupancy, p.occupancy_resolution = mask, 8
+        return p
+
+    sorted_ = _render_and_derivatives(ens, params_of, o, d, jitter, None, ray_regularisers(cfg))
+    with monkeypatch.context() as m:
+        m.setattr(compact, "lanes_by_count", lambda count, S: (dr.arange(mi.UInt32, dr.width(count)),) * 2)
+        own = _render_and_derivatives(ens, params_of, o, d, jitter, None, ray_regularisers(cfg))
+    for got, want in zip(sorted_, own):
+        assert np.abs(want).max() > 0
+        np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-7)

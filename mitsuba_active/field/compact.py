@@ -11,6 +11,13 @@ The outputs and derivatives are those of marching all S samples (tested);
 what no longer grows with S is the work per skipped sample: writing its
 position and features, reading them back in both marches, and writing its
 gradient.
+
+The rays' occupied counts differ widely (a trained field's: most rays
+none, a few dozens), and a SIMD packet of lanes marches as long as its
+longest ray. The marches therefore take the rays in order of their
+counts (:func:`lanes_by_count`), so that a packet's rays march about
+as long; each ray's outputs and its samples' gradients are those it
+gets in any lane.
 """
 
 from __future__ import annotations
@@ -64,21 +71,66 @@ def compact_samples(params, s: dict, member=None) -> dict | None:
     return out
 
 
+def lanes_by_count(count, S: int):
+    """The march's lanes for rays with ``count`` occupied samples each
+    (``mi.UInt32``, R, each at most ``S``), the counts ascending: ``order``
+    (lane ``l`` marches ray ``order[l]``) and ``place`` (ray ``r`` is
+    marched in lane ``place[r]``), both ``mi.UInt32`` (R).
+
+    A counting sort in three small kernels, without reading anything back:
+    the rays of one count take its lanes in any order (atomics), which
+    changes nothing a ray computes.
+    """
+    n = dr.width(count)
+    bins = dr.zeros(mi.UInt32, int(S) + 1)
+    rank = dr.scatter_inc(bins, count)  # a ray's place among those of its count
+    dr.eval(rank)  # Dr.Jit evaluates scatter_inc's result once, in the kernel of its own
+    b = dr.arange(mi.UInt32, int(S) + 1)
+    # The lanes before count b's: the rays with fewer samples.
+    _, start = dr.while_loop((mi.UInt32(0), dr.zeros(mi.UInt32, int(S) + 1)), lambda i, acc: i < b,
+                             lambda i, acc: (i + 1, acc + dr.gather(mi.UInt32, bins, i)))
+    place = dr.gather(mi.UInt32, start, count) + rank
+    order = dr.empty(mi.UInt32, n)
+    dr.scatter(order, dr.arange(mi.UInt32, n), place)
+    dr.eval(order, place)
+    return order, place
+
+
+def _permuted(values, index):
+    """``values`` (nested tuples of per-ray Dr.Jit arrays, or None) gathered
+    at ``index``; arrays of width 1 (a literal zero gradient) stay as they are."""
+    if isinstance(values, (tuple, list)):
+        return type(values)(_permuted(v, index) for v in values)
+    if values is None or dr.width(values) == 1:
+        return values
+    return dr.gather(type(values), values, index)
+
+
 class _CompactMarchedGrid(_MarchedGrid):
     """:class:`.march._MarchedGrid` over compacted samples (see the module
     docstring): ray ``r``'s march reads samples ``first[r]`` to
-    ``first[r] + count[r] - 1``; the backward march stores each sample's
-    gradient, and one kernel adds them to the grid corners of the occupied
-    samples alone."""
+    ``first[r] + count[r] - 1``; the backward march adds each sample's
+    gradient straight to its grid corners (no lane is left with skipped
+    samples to trace corners for, and none waits long for the others: the
+    lanes go by count). Lane ``l`` marches ray ``order[l]`` (:func:`lanes_by_count`):
+    the outputs and their gradients are put back in ray order."""
 
     def eval(self, grid, raws, lookup, t, first, count, k, delta, S, density_bias, inv_diag, reg=None):
         self.grid_width, self.lookup = dr.width(grid), lookup
         self.t, self.valid, self.S, self.K = t, mi.Bool(True), S, len(raws)
         self.density_bias, self.inv_diag, self.reg = density_bias, inv_diag, reg
-        self.count, self.k = count, k
+        self.k = k
         self._pack(raws)
-        self.first, self.delta, self.per_ray = first, delta, True
-        return self._outputs()
+        self.order, self.place = lanes_by_count(count, S)
+        self.count, self.first, self.delta = _permuted((count, first, delta), self.order)
+        self.per_ray = True
+        return _permuted(self._outputs(), self.place)
+
+    def grad_out(self):
+        return _permuted(super().grad_out(), self.order)
+
+    def set_grad_out(self, value):
+        super().set_grad_out(_permuted(value, self.place))
 
     def _more(self, i):
         return i < self.count
@@ -87,16 +139,14 @@ class _CompactMarchedGrid(_MarchedGrid):
         return dr.gather(mi.UInt32, self.k, j) < self.reg[2]
 
     def _write_gradients(self, j, grads, valid):
-        dr.scatter(self.grads, self.XF(*grads), j)
+        layout, n_members, u, member, _ = self.lookup
+        if member is not None and dr.width(member) > 1:
+            member = dr.gather(mi.UInt32, member, j)
+        accumulate(self.table_grads, layout, n_members, dr.gather(mi.Point3f, u, j), grads, member, True)
 
     def backward(self):
-        layout, n_members, u, member, _ = self.lookup
-        n = dr.width(self.t)
         self.table_grads = dr.zeros(mi.Float, self.grid_width)
-        self.grads = dr.empty(mi.Float, 4 * self.K * n)  # the march writes every sample
         self._march_gradients()
-        g = dr.gather(self.XF, self.grads, dr.arange(mi.UInt32, n), shape=(4 * self.K, n))
-        accumulate(self.table_grads, layout, n_members, u, [g[c] for c in range(4 * self.K)], member, True)
         self.set_grad_in("grid", self.table_grads)
 
     def name(self):

@@ -208,6 +208,37 @@ def _contracted_samples(o, d, params: FieldParams, jitter):
                 uniform=False)
 
 
+def _per_ray(values, R: int, ray):
+    """Per-ray ``values`` (a tuple of ``mi.Float`` and 3-vectors, each of
+    length R, or 1 for all rays) at the rays ``ray`` (``mi.UInt32``).
+
+    Gathering them keeps the samples in one flat kernel. Those of length R
+    are written side by side, ray after ray, and read with one packet
+    gather a sample instead of a gather a float (each sample of a ray reads
+    the same few floats).
+    """
+    flat = [(v, c) for v in values if dr.width(v) > 1 for c in (range(3) if dr.size_v(v) == 3 else (None,))]
+    if not flat:
+        return values
+    width = 1 << (len(flat) - 1).bit_length()
+    XF = type(mi.ArrayXf())
+    packed = dr.empty(mi.Float, width * R)
+    floats = [v if c is None else v[c] for v, c in flat]
+    dr.scatter(packed, XF(*(floats + [mi.Float(0.0)] * (width - len(flat)))), dr.arange(mi.UInt32, R))
+    got = dr.gather(XF, packed, ray, shape=(width, dr.width(ray)))
+    out, n = [], 0
+    for v in values:
+        if dr.width(v) == 1:
+            out.append(v)
+        elif dr.size_v(v) == 3:
+            out.append(type(v)(got[n], got[n + 1], got[n + 2]))
+            n += 3
+        else:
+            out.append(got[n])
+            n += 1
+    return tuple(out)
+
+
 def sample_along_rays(o, d, params: FieldParams, jitter=None, index=None):
     """Stratified sample positions, one block of S samples per ray.
 
@@ -240,11 +271,7 @@ def sample_along_rays(o, d, params: FieldParams, jitter=None, index=None):
     i = dr.arange(mi.UInt32, R * S) if index is None else mi.UInt32(index)
     ray = i // S
     k = mi.Float(i - ray * S)
-    # Gathering the per-ray quantities keeps everything in one flat kernel.
-    tn = dr.gather(mi.Float, t_near, ray)
-    tf = dr.gather(mi.Float, t_far, ray)
-    oo = dr.gather(mi.Point3f, o, ray) if dr.width(o) > 1 else mi.Point3f(o)
-    dd = dr.gather(mi.Vector3f, d, ray) if dr.width(d) > 1 else mi.Vector3f(d)
+    tn, tf, oo, dd = _per_ray((t_near, t_far, mi.Point3f(o), mi.Vector3f(d)), R, ray)
     valid = tf > tn
     length = dr.maximum(tf - tn, 0.0)
     delta = length * (1.0 / S)

@@ -231,6 +231,7 @@ class Drone(Embodiment):
         graph[-1, nw:nw + nt] = np.where(direct, gaps, np.inf)
         graph[np.isinf(graph)] = 0  # csgraph: 0 is no edge
         dist, pred = dijkstra(graph, directed=False, indices=nw + nt, return_predecessors=True)
+        points = np.concatenate([w, targets])  # the graph's nodes but the start
         routes = []
         for k, t in enumerate(targets):
             if direct[k]:
@@ -242,7 +243,8 @@ class Drone(Embodiment):
                 while node != nw + nt:
                     chain.append(node)
                     node = pred[node]
-                nodes = np.concatenate([[start], w[[c for c in reversed(chain[1:])]], [t]])
+                # A shortest way may pass through another target, a clear point too.
+                nodes = np.concatenate([[start], points[list(reversed(chain[1:]))], [t]])
                 routes.append(self._route(self._shortcut(nodes)))
         return routes
 

@@ -206,3 +206,26 @@ def test_a_start_pose_inside_the_geometry_is_refused(sphere_xml, tmp_path):
     with pytest.raises(UserError, match="the start pose, candidate .* lies inside the geometry"):
         Run(src, cfg, tmp_path / "r", progress=False, log=lambda m: None).execute()
     assert not (tmp_path / "r" / "run.json").exists()
+
+
+class _Walled(Drone):
+    """A drone whose only obstacle is a wall at x = 0 that a clear point at its top (|x| <= 0.25) crosses."""
+
+    def _make_waypoints(self):
+        return np.array([[-0.5, 1.0, 0.0], [0.5, 1.0, 0.0]])
+
+    def clear(self, a, b):
+        side = lambda p: np.where(np.abs(p[:, 0]) > 0.25, np.sign(p[:, 0]), 0.0)  # noqa: E731
+        a, b = np.atleast_2d(a), np.atleast_2d(b)
+        return side(a) * side(b) >= 0
+
+
+def test_a_route_may_pass_through_another_target(ball):
+    walled = _Walled(speed=1.0, mi_scene=ball.mi_scene, margin=MARGIN)
+    start, over, far = np.array([-1.0, 0.0, 0.0]), np.array([0.0, 1.2, 0.0]), np.array([1.0, 0.0, 0.0])
+    to_over, to_far = walled.paths(start, np.stack([over, far]))
+    assert to_over.length == pytest.approx(np.linalg.norm(over - start))
+    # The waypoints do not see each other: the way to the far side crosses at the other target.
+    assert any(np.allclose(p, over) for p in to_far.points)
+    assert np.allclose(to_far.points[[0, -1]], [start, far])
+    assert to_far.length == pytest.approx(polyline_length(to_far.points))

@@ -97,6 +97,11 @@ def score(rec: dict, name: str, views: int) -> dict:
     return out
 
 
+def fmt(value, decimals: int = 2) -> str:
+    """``value`` to ``decimals``, or "-" where a run has none (one stopped short of the view count)."""
+    return "-" if value is None else f"{value:.{decimals}f}"
+
+
 def mean(values):
     vals = [v for v in values if v is not None]
     return round(statistics.fmean(vals), 4) if vals else None
@@ -160,13 +165,12 @@ def main() -> None:
         for name in configs:
             r = row.get(name)
             cells.append("-" if r is None else
-                         f"{r['psnr']:.2f} / {r['psnr_fg']:.2f} ({r['views']} v, {r['travel']:.1f} u)")
+                         f"{fmt(r['psnr'])} / {fmt(r['psnr_fg'])} ({r['views']} v, {fmt(r['travel'], 1)} u)")
         lines.append(f"| {key} | {' | '.join(cells)} |")
     means = {name: {m: mean([row[name][m] for row in results.values() if name in row])
                     for m in (*METRICS, "views", "travel")} for name in configs}
-    cells = ["-" if means[n]["psnr"] is None else
-             f"{means[n]['psnr']:.2f} / {means[n]['psnr_fg']:.2f} ({means[n]['views']:.1f} v, {means[n]['travel']:.1f} u)"
-             for n in configs]
+    cells = [f"{fmt(means[n]['psnr'])} / {fmt(means[n]['psnr_fg'])} ({fmt(means[n]['views'], 1)} v, "
+             f"{fmt(means[n]['travel'], 1)} u)" for n in configs]
     lines.append(f"| mean | {' | '.join(cells)} |")
     comparisons = {}
     for a, b in (("rfe-cost", "rfe"), ("rfe-cost", "even"), ("rfe-cost", "even-tour"), ("rfe", "even"),

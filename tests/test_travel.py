@@ -229,3 +229,37 @@ def test_a_route_may_pass_through_another_target(ball):
     assert any(np.allclose(p, over) for p in to_far.points)
     assert np.allclose(to_far.points[[0, -1]], [start, far])
     assert to_far.length == pytest.approx(polyline_length(to_far.points))
+
+
+def test_a_drone_passes_over_candidates_it_cannot_get_to(spot_xml, tmp_path, monkeypatch):
+    from mitsuba_active.embodiments import Route
+
+    source = tiny_source(spot_xml, n_candidates=10, n_heldout=2, resolution=8)
+    where = np.array([c.to_world[:3, 3] for c in source.candidates])
+    near, walled = [3, 5], 6  # too near the geometry; reachable, but no route gets there
+    reachable, paths = Drone.reachable, Drone.paths
+
+    def reachable_but_near(self, points):
+        points = np.atleast_2d(points)
+        return reachable(self, points) & ~np.isclose(points[:, None], where[near][None]).all(axis=2).any(axis=1)
+
+    def paths_but_walled(self, start, targets, *views):
+        routes = paths(self, start, targets, *views)
+        return [Route(r.points, np.inf, np.inf) if np.allclose(t, where[walled]) else r
+                for t, r in zip(np.atleast_2d(targets), routes)]
+
+    monkeypatch.setattr(Drone, "reachable", reachable_but_near)
+    monkeypatch.setattr(Drone, "paths", paths_but_walled)
+    tiny = dict(initial_views=1, resolution=8, candidates=10, heldout=2, spp=4, eval_steps=5,
+                field=dict(batch_rays=128, n_samples=8, render_batch=256))
+    for planner in ("even", "random", "coverage"):
+        cfg = RunConfig(scene=str(source.scene.path), planner=planner, embodiment="drone", budget=7, seed=3,
+                        eval_views=[7], **tiny)
+        rec = Run(source, cfg, tmp_path / planner, progress=False, log=lambda m: None).execute()
+        assert len(rec["captured"]) == 7 and not rec.get("stopped"), planner
+        assert not set(rec["captured"][1:]) & {*near, walled}, (planner, rec["captured"])
+    # More views than the drone can get to: the run stops where none is left, not with an error.
+    cfg = RunConfig(scene=str(source.scene.path), planner="even", embodiment="drone", budget=9, eval_views=[9],
+                    **tiny)
+    rec = Run(source, cfg, tmp_path / "more", progress=False, log=lambda m: None).execute()
+    assert rec["finished"] and rec["stopped"]["views"] == 7 and "no candidate left" in rec["stopped"]["reason"]

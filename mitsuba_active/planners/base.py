@@ -58,6 +58,8 @@ class PlanningState:
             ``planner_rng(0)`` (that of a run with seed 0), so that a state
             made anew gives the same picks (each call moves one state's
             stream on, as a run's rounds do).
+        out_of_reach: indices of candidates the camera cannot get to (a
+            drone's or a base's), which :func:`unseen` leaves out.
     """
 
     candidates: list
@@ -65,6 +67,7 @@ class PlanningState:
     ensemble: object = None
     candidate_rays: tuple | None = None
     rng: np.random.Generator = field(default_factory=lambda: planner_rng(0))
+    out_of_reach: set = field(default_factory=set)
 
 
 def _are_candidate_rays(rays, n_candidates: int) -> bool:
@@ -154,9 +157,10 @@ class Planner:
 
 
 def unseen(state: PlanningState) -> np.ndarray:
-    """Boolean mask (C,) of candidates not captured yet."""
+    """Boolean mask (C,) of candidates not captured yet and within reach."""
     mask = np.ones(len(state.candidates), dtype=bool)
     mask[list(state.captured)] = False
+    mask[list(state.out_of_reach)] = False
     return mask
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from .base import Planner, PlanningState, check_batch, greedy_top, register, unseen
@@ -14,6 +16,9 @@ class RandomPlanner(Planner):
     name = "random"
 
     def select(self, state: PlanningState, batch: int):
+        if state.out_of_reach:
+            within = np.setdiff1d(np.arange(len(state.candidates)), list(state.out_of_reach))
+            return [int(i) for i in state.rng.choice(within, size=batch)], None
         return [int(i) for i in state.rng.integers(0, len(state.candidates), size=batch)], None
 
 
@@ -50,7 +55,7 @@ class CoveragePlanner(Planner):
             else:
                 scores = np.zeros(len(dirs))
             first_scores = scores if first_scores is None else first_scores
-            allowed = unseen(PlanningState(state.candidates, taken))
+            allowed = unseen(replace(state, captured=taken))
             pick = greedy_top(scores, allowed, 1)[0]
             picks.append(pick)
             taken.append(pick)

@@ -357,6 +357,8 @@ class Run:
                 self._save_view(n, v)
 
         state = PlanningState(self.source.candidates, self.env.captured, None, None, self.rng)
+        if cfg.embodiment != "teleport" and self.sampler is None:  # a pool pose too near the geometry is no pick
+            state.out_of_reach = set(np.flatnonzero(~self.journey.embodiment.reachable(self.journey.positions)))
         if self.planner.needs_ensemble:
             state.candidate_rays = sparse_candidate_rays(self.source.candidates, cfg.rays_per_candidate,
                                                          cfg.seed + 1)
@@ -384,6 +386,9 @@ class Run:
             if self.env.terminated or self.record.get("stopped"):
                 break
             b = min(cfg.batch, cfg.budget - len(self.env.captured))
+            if self.sampler is None and np.count_nonzero(unseen(state)) < b:
+                self._stop(len(self.env.captured), f"the {cfg.embodiment} can reach no candidate left")
+                continue
             t0 = time.perf_counter()
             if self.sampler is not None:
                 picks, scores = self._select_continuous(state, b)
@@ -394,7 +399,7 @@ class Run:
                 picks, scores = self.planner.checked_select(state, b)
                 picks = self.journey.weigh(picks, scores, unseen(state))
             t_select = time.perf_counter() - t0
-            picks = self._travel_to(picks)
+            picks = self._travel_to(picks, state.out_of_reach)
             if not picks:
                 continue
             t1 = time.perf_counter()
@@ -452,11 +457,15 @@ class Run:
                 self._stop(n + 1, f"the initial views alone pass the budgets ({why})")
         self.record["travel"] = self.journey.legs
 
-    def _travel_to(self, picks: list[int]) -> list[int]:
-        """Capture ``picks`` in order while they fit the travel budgets; returns those captured."""
+    def _travel_to(self, picks: list[int], out_of_reach: set) -> list[int]:
+        """Capture ``picks`` in order while they fit the travel budgets; returns those captured. A pick
+        with no route from here joins ``out_of_reach`` and is passed over, unless it was there already."""
         done = []
         for i in picks:
             route, why = self.journey.fits(i)
+            if not route.found and i not in out_of_reach:
+                out_of_reach.add(i)
+                continue
             if why:
                 self._stop(len(self.env.captured), why)
                 break

@@ -183,26 +183,32 @@ def _render_and_derivatives(ens, params_of, o, d, jitter, member, reg):
     return np.concatenate(values), grad, np.array(dr.grad(outs2[0]["opacity"]))
 
 
+def _half_occupied_case(K: int, rng):
+    """An ensemble of K members over 8x8 rays of 16 samples, and its parameters with a random
+    occupancy grid of 8^3 cells (about 40 % occupied) and float32 lookups."""
+    cfg = tiny_config(n_samples=16, distortion_weight=0.01, occlusion_weight=0.1, density_bias=0.0, init_scale=2.0)
+    ens = Ensemble(*BOX, n_members=K, config=cfg, seed=1)
+    o, d = camera_rays([0.3, 0.4, 2.5], width=8, height=8)
+    o, d = mi.Point3f(o.T), mi.Vector3f(d.T)
+    jitter = mi.Float(rng.uniform(size=64 * 16).astype(np.float32))
+    mask = mi.Bool(rng.uniform(size=8 ** 3) < 0.4)
+
+    def params_of():
+        p = ens.params()
+        p.grid = mi.Float(np.array(dr.detach(p.grid)))
+        p.half_grid = None
+        p.occupancy, p.occupancy_resolution = mask, 8
+        return p
+
+    return ens, params_of, o, d, jitter, cfg
+
+
 def test_the_compacted_march_matches_marching_every_sample(monkeypatch):
     """Marching the occupied samples alone (render.compact_samples) gives the outputs and
     derivatives of marching every sample, skipped ones with no density."""
     rng = np.random.default_rng(0)
     for K in (1, 2):
-        cfg = tiny_config(n_samples=16, distortion_weight=0.01, occlusion_weight=0.1, density_bias=0.0,
-                          init_scale=2.0)
-        ens = Ensemble(*BOX, n_members=K, config=cfg, seed=1)
-        o, d = camera_rays([0.3, 0.4, 2.5], width=8, height=8)
-        o, d = mi.Point3f(o.T), mi.Vector3f(d.T)
-        jitter = mi.Float(rng.uniform(size=64 * 16).astype(np.float32))
-        mask = mi.Bool(rng.uniform(size=8 ** 3) < 0.4)
-
-        def params_of():
-            p = ens.params()
-            p.grid = mi.Float(np.array(dr.detach(p.grid)))
-            p.half_grid = None
-            p.occupancy, p.occupancy_resolution = mask, 8
-            return p
-
+        ens, params_of, o, d, jitter, cfg = _half_occupied_case(K, rng)
         member = None if K == 1 else mi.UInt32(np.arange(64) % K)
         compacted = _render_and_derivatives(ens, params_of, o, d, jitter, member, ray_regularisers(cfg))
         with monkeypatch.context() as m:
@@ -240,21 +246,7 @@ def test_the_rays_march_in_order_of_their_counts_with_the_same_results(monkeypat
     np.testing.assert_array_equal(np.sort(order), np.arange(8))
     assert (np.diff(np.array(count)[order]) >= 0).all()
     np.testing.assert_array_equal(order[place], np.arange(8))
-    rng = np.random.default_rng(1)
-    cfg = tiny_config(n_samples=16, distortion_weight=0.01, occlusion_weight=0.1, density_bias=0.0, init_scale=2.0)
-    ens = Ensemble(*BOX, n_members=2, config=cfg, seed=1)
-    o, d = camera_rays([0.3, 0.4, 2.5], width=8, height=8)
-    o, d = mi.Point3f(o.T), mi.Vector3f(d.T)
-    jitter = mi.Float(rng.uniform(size=64 * 16).astype(np.float32))
-    mask = mi.Bool(rng.uniform(size=8 ** 3) < 0.4)
-
-    def params_of():
-        p = ens.params()
-        p.grid = mi.Float(np.array(dr.detach(p.grid)))
-        p.half_grid = None
-        p.occupancy, p.occupancy_resolution = mask, 8
-        return p
-
+    ens, params_of, o, d, jitter, cfg = _half_occupied_case(2, np.random.default_rng(1))
     sorted_ = _render_and_derivatives(ens, params_of, o, d, jitter, None, ray_regularisers(cfg))
     with monkeypatch.context() as m:
         m.setattr(compact, "lanes_by_count", lambda count, S: (dr.arange(mi.UInt32, dr.width(count)),) * 2)

@@ -30,7 +30,7 @@ import math
 import numpy as np
 from scipy.stats import norm
 
-from .cameras import Camera, camera_rays, camera_valid, look_at
+from .cameras import Camera, look_at
 from .planners.base import PlanningState, greedy_top, unseen
 from .training import sparse_candidate_rays
 
@@ -181,16 +181,6 @@ class PoseSampler:
         return self._keep(t, phi, n, avoid)
 
 
-def common_rays(cameras: list[Camera], n_rays: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """The same ``n_rays`` pixels of each camera (they share the pool's intrinsics): origins and
-    directions, (C, R, 3) each, so that near poses differ in their scores by their views, not their draws."""
-    valid = camera_valid(cameras[0])
-    pixels = np.flatnonzero(valid)
-    idx = pixels[rng.choice(len(pixels), size=n_rays, replace=n_rays > len(pixels))]
-    rays = [camera_rays(c) for c in cameras]
-    return np.stack([o[idx] for o, _ in rays]), np.stack([d[idx] for _, d in rays])
-
-
 def choose_among(planner, journey, state: PlanningState, shown_first: list[Camera], offers: list[Camera],
                  captured: list[int], batch: int, cfg):
     """The planner's ``batch`` picks, weighed against travel (:meth:`~mitsuba_active.travel.Journey.weigh`),
@@ -209,7 +199,7 @@ def choose_among(planner, journey, state: PlanningState, shown_first: list[Camer
 def refined_scores(planner, state: PlanningState, taken: list[Camera], captured: list[int],
                    parents: list[Camera], near: list[Camera], owner: list[int], rng: np.random.Generator, cfg):
     """(P + N,) scores of the ``parents`` (P) and the poses ``near`` them (N; ``owner`` (N,): each one's
-    parent): the mean of two fresh draws of common pixels (:func:`common_rays`). One pose per parent
+    parent): the mean of two fresh draws of pixels common to all of them. One pose per parent
     keeps its score, the others are NaN: its best near pose whose lead over it passes the threshold
     that noise alone (its size read from how the two draws disagree on the leads) would pass in
     :data:`FALSE_LEAD` of rounds over the N leads compared; else the parent itself."""
@@ -218,7 +208,7 @@ def refined_scores(planner, state: PlanningState, taken: list[Camera], captured:
     for _ in range(2):
         shown = PlanningState(cams, list(captured), state.ensemble, None, state.rng)
         if planner.needs_ensemble:
-            shown.candidate_rays = common_rays(cams, cfg.rays_per_candidate, rng)
+            shown.candidate_rays = sparse_candidate_rays(cams, cfg.rays_per_candidate, rng, same_pixels=True)
         draws.append(np.asarray(planner.checked_select(shown, 1)[1], dtype=np.float64)[len(taken):])
     a, b = draws
     p, up = len(parents), np.asarray(owner, dtype=np.int64)

@@ -60,21 +60,27 @@ def view_rays(views: list[View]) -> dict:
     return rays
 
 
-def sparse_candidate_rays(candidates, n_rays: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+def sparse_candidate_rays(candidates, n_rays: int, seed: int | np.random.Generator,
+                          same_pixels: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """A fixed random subset of R pixel rays per candidate (of the pixels that have one:
-    :func:`~mitsuba_active.cameras.camera_valid`): origins and directions, (C, R, 3) each."""
+    :func:`~mitsuba_active.cameras.camera_valid`): origins and directions, (C, R, 3) each.
+
+    ``seed``: an int, or a ``numpy.random.Generator`` to draw from. ``same_pixels``: every
+    candidate's rays go through the first one's pixels (candidates sharing its intrinsics), so
+    that near poses differ in their rays by their views, not by their draws."""
     if not is_whole(n_rays) or not 0 < n_rays <= MAX_CANDIDATE_RAYS:
         raise ValueError(f"rays per candidate must be a whole number in [1, {MAX_CANDIDATE_RAYS}], got {n_rays!r}")
     rng = np.random.default_rng(seed)
-    o_all, d_all = [], []
+    o_all, d_all, idx = [], [], None
     for cam in candidates:
         o, d = camera_rays(cam)
-        valid = camera_valid(cam)
-        if valid.all():  # a pinhole's draws stay as they were
-            idx = rng.choice(len(o), size=n_rays, replace=n_rays > len(o))
-        else:
-            pixels = np.flatnonzero(valid)
-            idx = pixels[rng.choice(len(pixels), size=n_rays, replace=n_rays > len(pixels))]
+        if idx is None or not same_pixels:
+            valid = camera_valid(cam)
+            if valid.all():  # a pinhole's draws stay as they were
+                idx = rng.choice(len(o), size=n_rays, replace=n_rays > len(o))
+            else:
+                pixels = np.flatnonzero(valid)
+                idx = pixels[rng.choice(len(pixels), size=n_rays, replace=n_rays > len(pixels))]
         o_all.append(o[idx])
         d_all.append(d[idx])
     return np.stack(o_all), np.stack(d_all)

@@ -94,6 +94,31 @@ def test_skipping_nothing_changes_neither_colours_nor_gradients():
     assert np.abs(results[1][1]).sum() > 0
 
 
+def test_marches_stop_where_the_transmittance_runs_out():
+    ens = Ensemble(*BOX, n_members=1, config=tiny_config(n_samples=16), seed=3)
+    o, d = camera_rays([0.3, 0.4, 2.5], width=6, height=6)
+    G, L = 4, ens.config.n_levels
+    table = np.array(dr.detach(ens.params().grid)).reshape(-1, 4)
+    table[:, 0] = (4.0 - ens.config.density_bias) / L  # an optical depth of about 1.5 a sample
+    results = []
+    for stop in (0.0, 1e-4):
+        params = ens.params()
+        params.grid = mi.Float(table.reshape(-1))
+        params.occupancy, params.occupancy_resolution = mi.Bool(np.ones(G ** 3, bool)), G
+        params.stop_transmittance = stop
+        dr.enable_grad(params.grid)
+        out = render_flat(params, mi.Point3f(o.T), mi.Vector3f(d.T), 0)
+        dr.backward(dr.sum(dr.sum(out["rgb"])) + dr.sum(out["distance"]))
+        results.append((np.array(out["rgb"]), np.array(out["opacity"]), np.array(dr.grad(params.grid))))
+    (rgb, opacity, grad), (rgb_stop, _, grad_stop) = results
+    hit = opacity > 0.5
+    assert hit.sum() > 10 and (opacity[hit] > 1 - 1e-6).all()  # the rays that meet the box run out
+    np.testing.assert_allclose(rgb_stop, rgb, atol=1e-3)
+    np.testing.assert_allclose(grad_stop, grad, atol=1e-3 * np.abs(grad).max())
+    # The corners that only samples behind the stop touch get nothing.
+    assert 0 < np.count_nonzero(grad_stop) < 0.8 * np.count_nonzero(grad)
+
+
 def test_save_load_keeps_the_occupancy(tmp_path):
     ens = Ensemble(*BOX, n_members=2, config=tiny_config(**SKIPPING), seed=1)
     rays = views(FOUR_SIDES[:2], width=16, height=16)

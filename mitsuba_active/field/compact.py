@@ -113,10 +113,11 @@ class _CompactMarchedGrid(_MarchedGrid):
     gradient straight to its grid corners (no lane is left with skipped
     samples to trace corners for, and none waits long for the others: the
     lanes go by count). Lane ``l`` marches ray ``order[l]`` (:func:`lanes_by_count`):
-    the outputs and their gradients are put back in ray order."""
+    the outputs and their gradients are put back in ray order. A march stops
+    early where the transmittance of every member falls below ``stop``."""
 
-    def eval(self, grid, raws, lookup, t, first, count, k, delta, S, density_bias, inv_diag, reg=None):
-        self.grid_width, self.lookup = dr.width(grid), lookup
+    def eval(self, grid, raws, lookup, t, first, count, k, delta, S, density_bias, inv_diag, stop, reg=None):
+        self.grid_width, self.lookup, self.stop = dr.width(grid), lookup, stop
         self.t, self.valid, self.S, self.K = t, mi.Bool(True), S, len(raws)
         self.density_bias, self.inv_diag, self.reg = density_bias, inv_diag, reg
         self.k = k
@@ -157,7 +158,9 @@ def march_compact(params, c: dict, raws, reg=None):
     """Composite compacted samples ``c`` (:func:`compact_samples`) from their
     raw features ``raws`` (a tuple, one ``mi.Vector4f`` per member, length
     M), differentiable with respect to ``params.grid``: one (rgb, distance
-    sum, opacity[, regularisers]) tuple per member, per ray (length R)."""
+    sum, opacity[, regularisers]) tuple per member, per ray (length R),
+    each march stopping at ``params.stop_transmittance``."""
     lookup = (params.layout, params.n_members, c["u"], c["member"], True)
     return dr.custom(_CompactMarchedGrid, params.grid, raws, lookup, c["t"], c["first"], c["count"], c["k"],
-                     c["delta"], int(params.n_samples), float(params.density_bias), 1.0 / params.diag, reg)
+                     c["delta"], int(params.n_samples), float(params.density_bias), 1.0 / params.diag,
+                     float(params.stop_transmittance), reg)

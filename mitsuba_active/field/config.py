@@ -322,6 +322,12 @@ class FieldConfig:
         Training steps without skipping after the rays are set (or
         replaced), before the first refresh (0 acts as 1: the first grid
         comes from the fields after one step).
+    stop_transmittance:
+        With skipping, a ray's march stops once every member's transmittance
+        has fallen below this (early ray termination; Instant-NGP's 1e-4):
+        the samples behind would add less than this to its colour, and
+        neither their colours nor their gradients are computed. 0: every
+        occupied sample is marched.
     """
 
     n_levels: int = 2
@@ -360,6 +366,7 @@ class FieldConfig:
     occupancy_interval: int = 16
     occupancy_decay: float = OCCUPANCY_DECAY
     occupancy_warmup: int = 64
+    stop_transmittance: float = 1e-4
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -435,6 +442,8 @@ class FieldConfig:
                             "and occupancy_warmup >= 0")
         if not 0 < self.occupancy_decay <= 1:
             raise UserError(f"FieldConfig.occupancy_decay must be in (0, 1], got {self.occupancy_decay}")
+        if not 0 <= self.stop_transmittance < 1:
+            raise UserError(f"FieldConfig.stop_transmittance must be in [0, 1) (0: off), got {self.stop_transmittance}")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

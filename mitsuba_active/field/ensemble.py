@@ -174,6 +174,7 @@ class Ensemble:
                            density_bias=float(cfg.density_bias),
                            n_members=self.n_members, occupancy=self._occupied,
                            occupancy_resolution=int(cfg.occupancy_resolution),
+                           stop_transmittance=float(cfg.stop_transmittance),
                            view=self._opt["view"] if cfg.view_degree > 0 else None,
                            view_degree=int(cfg.view_degree), view_resolution=int(cfg.view_resolution),
                            contraction=float(cfg.contraction),

@@ -90,9 +90,24 @@ class _MarchedComposite(dr.CustomOp):
         dw, ow, _ = self.reg
         return tuple((rgb, dsum, opac, dw * dist + ow * occ) for rgb, dsum, opac, dist, occ in out)
 
+    #: Transmittance below which a ray's march stops (early ray termination, see
+    #: ``FieldConfig.stop_transmittance``); 0: every sample is marched.
+    stop = 0.0
+
     def _more(self, i):
         """Whether a ray's march goes on to its step ``i``."""
         return i < self.S
+
+    def _going(self, i, states):
+        """Whether a ray's march goes on to its step ``i``, given the members'
+        loop states (transmittance first): some member still sees through."""
+        more = self._more(i)
+        if not self.stop:
+            return more
+        seen = states[0][0] > self.stop
+        for state in states[1:]:
+            seen |= state[0] > self.stop
+        return more & seen
 
     def _distortion(self, w, t_i, p_dsum, p_opac):
         """A sample's share of the distortion loss (weight ``w`` at ``t_i``,
@@ -162,7 +177,7 @@ class _MarchedComposite(dr.CustomOp):
 
         extra = () if self.reg is None else (mi.Float(z), mi.Float(z))
         start = tuple((z + 1.0, mi.Color3f(z), mi.Float(z), mi.Float(z)) + extra for _ in range(self.K))
-        _, sums, acc = dr.while_loop((mi.UInt32(0), start, acc), lambda i, *_: self._more(i), step)
+        _, sums, acc = dr.while_loop((mi.UInt32(0), start, acc), lambda i, sums, _: self._going(i, sums), step)
         return tuple(member[1:] for member in sums), acc
 
     def _march_gradients(self):
@@ -213,7 +228,7 @@ class _MarchedComposite(dr.CustomOp):
         z = dr.zeros(mi.Float, dr.width(self.delta))
         extra = () if self.reg is None else (mi.Float(z), mi.Float(z))
         dr.while_loop((mi.UInt32(0), tuple((z + 1.0, mi.Float(z)) + extra for _ in range(self.K))),
-                      lambda i, _: self._more(i), step)
+                      self._going, step)
 
     def _write_gradients(self, j, grads, valid):
         """Store sample ``j``'s gradients (``grads``: K*4 ``mi.Float``, laid

@@ -36,6 +36,8 @@ class FieldParams:
         occupancy: ``mi.Bool`` of ``occupancy_resolution**3`` cells, or None
             (no empty-space skipping; see :mod:`.occupancy`).
         occupancy_resolution: cells per axis of ``occupancy``.
+        stop_transmittance: where a march over the occupied samples stops
+            (``FieldConfig.stop_transmittance``).
         view: ``mi.Float`` table of the view-dependent colour's coefficients
             (see :mod:`.view`), or None (a diffuse field).
         view_degree, view_resolution: its spherical-harmonic degree and
@@ -63,6 +65,7 @@ class FieldParams:
     n_members: int = 1
     occupancy: object = None
     occupancy_resolution: int = 0
+    stop_transmittance: float = 0.0
     view: object = None
     view_degree: int = 0
     view_resolution: int = 0

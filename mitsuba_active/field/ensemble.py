@@ -31,7 +31,7 @@ from .bootstrap import BOOTSTRAP_KINDS, bootstrap_weights, weighted
 from .config import MAX_MEMBERS, MAX_STEPS, FieldConfig
 from .fisher import fisher_diagonal
 from .grid import GridLayout, anneal_weights, half_table, init_grid
-from .inputs import checked_rays, point, triples
+from .inputs import checked_rays, padded_rays, point, triples
 from .io import load_ensemble, save_ensemble
 from .occupancy import cell_opacity
 from .regularisers import grid_smoothness, random_background, ray_regularisers
@@ -527,26 +527,6 @@ class Ensemble:
         return losses
 
     # -------------------------------------------------------------- inference
-    def _render_batch(self, n: int) -> int:
-        """Rays per inference batch for a call with ``n`` rays: the next power
-        of two (at least 64), capped at ``render_batch``. Small calls (a
-        planner's 256 rays per candidate) then do not pay for a full batch of
-        padding, and the few distinct sizes keep compiled kernels reused."""
-        return min(int(self.config.render_batch), max(64, 1 << max(0, int(n) - 1).bit_length()))
-
-    def _pad(self, origins, directions):
-        """Pad (N,3) rays to a whole number (>= 1) of batches (see
-        :meth:`_render_batch`); returns (o, d, N, N_pad, B)."""
-        o, d = checked_rays(origins, directions, "rendering")
-        n = o.shape[0]
-        B = self._render_batch(n)
-        n_pad = max(B, -(-n // B) * B)
-        op = np.zeros((n_pad, 3), np.float32)
-        dp = np.zeros((n_pad, 3), np.float32)
-        dp[:, 2] = 1.0
-        op[:n], dp[:n] = o, d
-        return op, dp, n, n_pad, B
-
     def render_dr(self, params, o, d, offset: int = 0):
         """Render Dr.Jit rays (``mi.Point3f`` origins, ``mi.Vector3f`` unit
         directions) with ``params`` (:meth:`params`), deterministically: a list of
@@ -556,18 +536,19 @@ class Ensemble:
 
     def _render_all(self, origins, directions):
         """Render every ray with every member; numpy (K, N, ...) outputs."""
-        op, dp, n, n_pad, B = self._pad(origins, directions)
+        rays = padded_rays(origins, directions, self.config.render_batch)
+        B = rays.batch
         rgb, dist, opac = [], [], []
         params = self.params()
         with dr.suspend_grad():
-            for s in range(0, n_pad, B):
-                outs = self.render_dr(params, mi.Point3f(op[s:s + B].T), mi.Vector3f(dp[s:s + B].T), s)
+            for s in range(0, rays.n_pad, B):
+                outs = self.render_dr(params, mi.Point3f(rays.o[s:s + B].T), mi.Vector3f(rays.d[s:s + B].T), s)
                 dr.eval(outs)
                 rgb.append([np.array(out["rgb"]).T for out in outs])
                 dist.append([np.array(out["distance"]) for out in outs])
                 opac.append([np.array(out["opacity"]) for out in outs])
         # (batches, K, B, ...) -> (K, N, ...)
-        return tuple(np.concatenate(np.asarray(a, np.float32), axis=1)[:, :n] for a in (rgb, dist, opac))
+        return tuple(np.concatenate(np.asarray(a, np.float32), axis=1)[:, :rays.n] for a in (rgb, dist, opac))
 
     def render(self, origins, directions) -> dict:
         """Render (N,3) rays with every member.

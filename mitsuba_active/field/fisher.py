@@ -17,6 +17,7 @@ import numpy as np
 
 from ..checks import is_whole
 from ..errors import UserError
+from .inputs import padded_rays
 from .render import render_flat
 
 
@@ -25,7 +26,8 @@ def fisher_diagonal(ens, origins, directions, member: int, probes: int, seed: in
     over rays ``origins``, ``directions`` ((N, 3) each), from ``probes`` probes drawn from ``seed``."""
     if not is_whole(probes) or probes < 1:
         raise UserError(f"fisher_diag: probes must be a whole number >= 1, got {probes!r}")
-    op, dp, n, n_pad, B = ens._pad(origins, directions)
+    rays = padded_rays(origins, directions, ens.config.render_batch)
+    n, n_pad, B = rays.n, rays.n_pad, rays.batch
     rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(member),)))
     grid = mi.Float(dr.detach(ens._opt["grid"]))
     bg = mi.Float(dr.detach(ens._opt["background"]))
@@ -37,8 +39,8 @@ def fisher_diagonal(ens, origins, directions, member: int, probes: int, seed: in
         params = ens.params()
         params.grid, params.background = grid, bg
         for s in range(0, n_pad, B):
-            out = render_flat(params, mi.Point3f(op[s:s + B].T),
-                              mi.Vector3f(dp[s:s + B].T), int(member))
+            out = render_flat(params, mi.Point3f(rays.o[s:s + B].T),
+                              mi.Vector3f(rays.d[s:s + B].T), int(member))
             vb = mi.Color3f(v[s:s + B].T)
             dr.backward(dr.sum(dr.dot(out["rgb"], vb)))
         gg = np.array(dr.grad(grid), np.float64).reshape(-1, ens.n_members, 4)[:, member]

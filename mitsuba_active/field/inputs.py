@@ -8,6 +8,8 @@ the call and the argument.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from ..errors import UserError
@@ -49,3 +51,38 @@ def checked_rays(origins, directions, what: str) -> tuple[np.ndarray, np.ndarray
         raise UserError(f"{what}: directions must be unit vectors (lengths from {norms.min():.4g} "
                         f"to {norms.max():.4g})")
     return o, d
+
+
+@dataclass(frozen=True)
+class PaddedRays:
+    """Rays padded to whole inference batches (see :func:`padded_rays`).
+
+    Attributes:
+        o, d: (n_pad, 3) float32 origins and unit directions; the padding
+            rays start at the origin and look along +z.
+        n: rays given (the first ``n`` rows).
+        n_pad: rows, a whole number (>= 1) of batches.
+        batch: rays per batch.
+    """
+
+    o: np.ndarray
+    d: np.ndarray
+    n: int
+    n_pad: int
+    batch: int
+
+
+def padded_rays(origins, directions, render_batch: int, what: str = "rendering") -> PaddedRays:
+    """(N, 3) rays, checked (:func:`checked_rays`), padded to whole batches of
+    the next power of two of N (at least 64) capped at ``render_batch``: small
+    calls (a planner's 256 rays per candidate) then do not pay for a full batch
+    of padding, and the few distinct sizes keep compiled kernels reused."""
+    o, d = checked_rays(origins, directions, what)
+    n = o.shape[0]
+    batch = min(int(render_batch), max(64, 1 << max(0, int(n) - 1).bit_length()))
+    n_pad = max(batch, -(-n // batch) * batch)
+    op = np.zeros((n_pad, 3), np.float32)
+    dp = np.zeros((n_pad, 3), np.float32)
+    dp[:, 2] = 1.0
+    op[:n], dp[:n] = o, d
+    return PaddedRays(op, dp, n, n_pad, batch)

@@ -119,6 +119,26 @@ def test_marches_stop_where_the_transmittance_runs_out():
     assert 0 < np.count_nonzero(grad_stop) < 0.8 * np.count_nonzero(grad)
 
 
+def test_the_first_steps_take_half_the_samples(monkeypatch):
+    from mitsuba_active.field import ensemble as ensemble_module
+
+    ens = Ensemble(*BOX, n_members=1, config=tiny_config(**dict(SKIPPING, coarse_steps=3, n_samples=32)), seed=0)
+    ens.set_rays(*views(FOUR_SIDES[:1], width=8, height=8))
+    seen = []
+    real = ensemble_module.render_members
+
+    def spy(params, *args, **kwargs):
+        seen.append(params.n_samples)
+        return real(params, *args, **kwargs)
+
+    monkeypatch.setattr(ensemble_module, "render_members", spy)
+    assert np.isfinite(ens.train(5)).all()
+    assert seen == [16, 16, 16, 32, 32]
+    assert ens.params().n_samples == 32  # renders take every sample
+    with pytest.raises(UserError, match="coarse_steps"):
+        tiny_config(coarse_steps=-1)
+
+
 def test_save_load_keeps_the_occupancy(tmp_path):
     ens = Ensemble(*BOX, n_members=2, config=tiny_config(**SKIPPING), seed=1)
     rays = views(FOUR_SIDES[:2], width=16, height=16)

@@ -51,6 +51,10 @@ HASH_LEVELS_BY_FINEST = {64: 6}
 #: finer grid (Mic at 200 pixels) it cost 0.4 dB and no time, so there the
 #: grid keeps FieldConfig's decay.
 OCCUPANCY_DECAY_BY_FINEST = {64: 0.5}
+#: The hash grids' ``coarse_steps``: a third of an evaluation field's 1,500
+#: steps, the fog phase that cost more than the other two thirds at 128 px
+#: (docs/field-measurements.md).
+COARSE_STEPS = 500
 #: ``FieldConfig.occupancy_decay``'s default.
 OCCUPANCY_DECAY = 0.95
 
@@ -65,7 +69,8 @@ def image_scaled_grid(width: int) -> dict:
     cells: :data:`HASH_LEVELS_BY_FINEST`) from 16 cells to that finest,
     in equal ratios, the levels whose vertices fit 2^15 entries dense, the
     others hashed into 2^15; empty space is skipped (the occupancy grid
-    forgetting at :data:`OCCUPANCY_DECAY_BY_FINEST`), the colour also depends
+    forgetting at :data:`OCCUPANCY_DECAY_BY_FINEST`) and the first
+    :data:`COARSE_STEPS` steps take half the samples, the colour also depends
     on the view (degree 1) and the distortion loss (0.01) keeps the weights
     compact.
 
@@ -80,7 +85,7 @@ def image_scaled_grid(width: int) -> dict:
     return {"n_levels": levels, "base_resolution": HASH_BASE,
             "per_level_scale": (finest / HASH_BASE) ** (1.0 / (levels - 1)),
             "log2_table_size": HASH_LOG2_TABLE, "n_samples": min(256, 2 * finest),
-            "occupancy_resolution": 64,
+            "occupancy_resolution": 64, "coarse_steps": COARSE_STEPS,
             "occupancy_decay": OCCUPANCY_DECAY_BY_FINEST.get(finest, OCCUPANCY_DECAY), "view_degree": 1,
             "distortion_weight": 0.01}
 
@@ -124,7 +129,8 @@ FIELD_PRESETS = {
                         "two dense levels (16, 32 cells), 64 samples a ray: for tests and quick sweeps"),
     "default": FieldPreset({"n_levels": 2, "log2_table_size": 18, "lr": 0.01, "empty_weight": 0.01},
                            {"n_levels": 2, "per_level_scale": 2.0, "log2_table_size": 17, "n_samples": 64,
-                            "occupancy_resolution": 0, "occupancy_decay": OCCUPANCY_DECAY, "view_degree": 0,
+                            "occupancy_resolution": 0, "coarse_steps": 0, "occupancy_decay": OCCUPANCY_DECAY,
+                            "view_degree": 0,
                             "distortion_weight": 0.0},
                            "a grid that follows the images' width: fast's up to 64 pixels; from 100, a "
                            "12-level hash grid (6 levels at 100-128 pixels) from 16 cells to half the width (up to "
@@ -328,6 +334,10 @@ class FieldConfig:
         the samples behind would add less than this to its colour, and
         neither their colours nor their gradients are computed. 0: every
         occupied sample is marched.
+    coarse_steps:
+        With skipping, the first training steps take half of ``n_samples``
+        a ray (bins twice as long): early on the field is fog that the
+        occupancy grid cannot skip yet, and those steps cost most. 0: off.
     """
 
     n_levels: int = 2
@@ -367,6 +377,7 @@ class FieldConfig:
     occupancy_decay: float = OCCUPANCY_DECAY
     occupancy_warmup: int = 64
     stop_transmittance: float = 1e-4
+    coarse_steps: int = 0
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -442,6 +453,8 @@ class FieldConfig:
                             "and occupancy_warmup >= 0")
         if not 0 < self.occupancy_decay <= 1:
             raise UserError(f"FieldConfig.occupancy_decay must be in (0, 1], got {self.occupancy_decay}")
+        if int(self.coarse_steps) < 0:
+            raise UserError(f"FieldConfig.coarse_steps must be >= 0 (0: off), got {self.coarse_steps}")
         if not 0 <= self.stop_transmittance < 1:
             raise UserError(f"FieldConfig.stop_transmittance must be in [0, 1) (0: off), got {self.stop_transmittance}")
 

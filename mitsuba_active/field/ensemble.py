@@ -164,13 +164,14 @@ class Ensemble:
             raise UserError(f"this {type(self).__name__} was made under Mitsuba variant '{self._variant}', but "
                             f"'{mi.variant()}' is set; call mitsuba.set_variant('{self._variant}') first")
 
-    def params(self) -> FieldParams:
-        """Current parameters as a :class:`FieldParams` (Dr.Jit arrays)."""
+    def params(self, n_samples: int | None = None) -> FieldParams:
+        """Current parameters as a :class:`FieldParams` (Dr.Jit arrays), for
+        rays of ``n_samples`` samples (None: ``FieldConfig.n_samples``)."""
         self._check_variant()
         cfg = self.config
         return FieldParams(grid=self._opt["grid"], background=self._opt["background"],
                            layout=self._annealed_layout(), box_min=self.box_min, box_max=self.box_max,
-                           n_samples=int(cfg.n_samples),
+                           n_samples=int(cfg.n_samples if n_samples is None else n_samples),
                            density_bias=float(cfg.density_bias),
                            n_members=self.n_members, occupancy=self._occupied,
                            occupancy_resolution=int(cfg.occupancy_resolution),
@@ -369,6 +370,13 @@ class Ensemble:
         return np.array(self._occupied, dtype=bool).reshape(G, G, G)
 
     # --------------------------------------------------------------- training
+    def _training_samples(self) -> int:
+        """Samples a ray of the next training step takes (see ``FieldConfig.coarse_steps``)."""
+        cfg = self.config
+        n = int(cfg.n_samples)
+        coarse = cfg.occupancy_resolution > 0 and self._step < int(cfg.coarse_steps)
+        return max(1, n // 2) if coarse else n
+
     def _batch(self, step: int):
         """Ray indices and per-sample jitter of one step, made in-kernel.
 
@@ -376,7 +384,7 @@ class Ensemble:
         lets them share one lookup kernel); they differ by initialisation.
         """
         cfg = self.config
-        N, S = int(cfg.batch_rays), int(cfg.n_samples)
+        N, S = int(cfg.batch_rays), self._training_samples()
         # Opaque keys: the step and ray count change every call but must not
         # be baked into the kernel as literals (that would recompile per step).
         base = (self.seed * 0x9E3779B1 + step * 0x85EBCA77) & 0xFFFFFFFF
@@ -424,7 +432,7 @@ class Ensemble:
         o = dr.gather(mi.Point3f, R["o"], idx)
         d = dr.gather(mi.Vector3f, R["d"], idx)
         target = dr.gather(mi.Color3f, R["rgb"], idx)
-        reg = ray_regularisers(cfg)
+        reg = ray_regularisers(cfg, self._training_samples())
         outs, regulariser = self._training_outputs(o, d, jitter, reg)
         if cfg.random_background and self._known_background:
             target, outs = random_background(self.params(), self._rays, idx, target, outs, self.seed, self._step)
@@ -465,7 +473,7 @@ class Ensemble:
         """Renders of a training batch (one per member; with ``reg``, see
         :func:`.regularisers.ray_regularisers`, each has its ``regulariser``)
         and a loss term added to theirs (none here)."""
-        return render_members(self.params(), o, d, jitter, reg=reg), 0.0
+        return render_members(self.params(self._training_samples()), o, d, jitter, reg=reg), 0.0
 
     def optimizer_step(self):
         """Apply one Adam update from the accumulated gradients (and refresh

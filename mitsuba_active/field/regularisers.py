@@ -34,20 +34,23 @@ from .sky import background_colour
 
 
 
-def ray_regularisers(config) -> tuple | None:
-    """The regularisers a :class:`.FieldConfig` asks of its training renders:
-    (distortion weight, occlusion weight, occlusion samples ``M``), or None
-    when both weights are 0."""
+def ray_regularisers(config, n_samples: int | None = None) -> tuple | None:
+    """The regularisers a :class:`.FieldConfig` asks of its training renders
+    of ``n_samples`` samples a ray (None: ``config.n_samples``): (distortion
+    weight, occlusion weight, occlusion samples ``M``), or None when both
+    weights are 0."""
     dw, ow = float(config.distortion_weight), float(config.occlusion_weight)
     if dw == 0 and ow == 0:
         return None
-    return dw, ow, occlusion_samples(config)
+    return dw, ow, occlusion_samples(config, n_samples)
 
 
-def occlusion_samples(config) -> int:
-    """``M``: the leading samples of a ray that the occlusion penalty covers
-    (``occlusion_fraction`` of ``n_samples``, at least 1)."""
-    return max(1, int(round(float(config.occlusion_fraction) * int(config.n_samples))))
+def occlusion_samples(config, n_samples: int | None = None) -> int:
+    """``M``: the leading samples of a ray of ``n_samples`` (None:
+    ``config.n_samples``) that the occlusion penalty covers
+    (``occlusion_fraction`` of them, at least 1)."""
+    n = int(config.n_samples if n_samples is None else n_samples)
+    return max(1, int(round(float(config.occlusion_fraction) * n)))
 
 
 def blocked_regulariser(w, tau, t, delta, S: int, reg: tuple):

@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.stats import norm
 
 from .cameras import Camera, look_at
@@ -83,9 +84,9 @@ class RigSurface:
         #: Radians between neighbouring pool cameras on the unit sphere (the band's area over the pool).
         self.spacing = math.sqrt(2 * math.pi * max(self.band[1] - self.band[0], 1e-3) / len(pool))
         #: Radians: the median angle from a pool camera to its nearest neighbour (on the unit surface).
-        cos = np.clip(units @ units.T, -1.0, 1.0)
-        np.fill_diagonal(cos, -1.0)
-        self.gap = float(np.median(np.arccos(cos.max(axis=1))))
+        # A k-d tree, not the C x C angles: a large pool's would not fit in memory.
+        chord = cKDTree(units).query(units, k=2)[0][:, 1]  # inf for a pool of one: the angle is pi
+        self.gap = float(np.median(2.0 * np.arcsin(np.minimum(chord, 2.0) / 2.0)))
 
     @staticmethod
     def _unit(v):

@@ -479,12 +479,14 @@ class Ensemble:
         """Apply one Adam update from the accumulated gradients (and refresh
         the occupancy grid when one is due)."""
         self._check_variant()
+        cfg = self.config
+        if cfg.lr_decay_steps > 0:
+            self._decay_learning_rates(0.1 ** (self._step / cfg.lr_decay_steps))
         self._opt.step(eval=False)
         # The lookups' float16 copy is written by the update's own kernel.
         dr.schedule(self._half_grid(evaluate=False))
         dr.eval()
         self._step += 1
-        cfg = self.config
         if cfg.occupancy_resolution > 0:
             self._occupancy_age += 1
             # The age is counted after each step, so a warm-up of 0 refreshes after the first step.
@@ -494,6 +496,13 @@ class Ensemble:
             if since >= 0 and not annealing and (since % int(cfg.occupancy_interval) == 0
                                                  or self._occupancy is None):
                 self._refresh_occupancy()
+
+    def _decay_learning_rates(self, factor: float):
+        """Every parameter's learning rate, times ``factor``."""
+        cfg = self.config
+        rates = {key: factor * (cfg.lr_background if key in ("background", "sky") else cfg.lr)
+                 for key in self._opt.keys()}
+        self._opt.set_learning_rate(rates)
 
     def train(self, steps: int, progress: bool = False) -> np.ndarray:
         """Run ``steps`` Adam steps on all members; returns (steps,) float64

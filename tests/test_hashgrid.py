@@ -166,7 +166,7 @@ def test_coherent_batches_train_and_rerun_alike():
     np.testing.assert_allclose(runs[0], runs[1], rtol=1e-4)  # equal up to the threads' summation order
     assert runs[0][-5:].mean() < 0.5 * runs[0][:5].mean()
     # One step's rays come in the sorted order, one from each stratum.
-    idx, _ = ens._batch(0)
+    idx, _ = ens._batch()
     pos = np.argsort(np.array(ens._rays["order"]))[np.array(idx)]
     lane, M = np.arange(128), len(a[0])
     assert np.all(pos >= lane * M // 128) and np.all(pos <= ((lane + 1) * M - 1) // 128)

@@ -181,7 +181,7 @@ def test_random_background_swaps_the_background_of_empty_rays():
         ens._opt["background"] = mi.Float(np.full(6, -4.0, np.float32))  # dark, far from white
         value, loss = ens.training_loss()
         dr.backward(loss)
-        idx, _ = ens._batch(0)
+        idx, _ = ens._batch()
         return float(value[0]), np.array(dr.grad(ens._opt["background"])), np.asarray(~hit)[np.array(idx)].mean()
 
     value, _, share = mse(1, (1.0, 1.0, 1.0))

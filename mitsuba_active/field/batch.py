@@ -1,4 +1,4 @@
-"""Spatially coherent training batches: rays sorted by where they look, drawn stratified.
+"""Training batches: each step's rays and sample jitter, drawn in-kernel, optionally spatially coherent.
 
 A training step marches ``batch_rays`` rays, one per group of SIMD lanes. When
 each lane's ray is drawn independently, neighbouring lanes march unrelated
@@ -14,6 +14,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 import numpy as np
+
+from .samples import hash_u32, uniform_from_u32
 
 #: Bits per axis of the Morton codes (3 x 21 = 63 bits in a uint64).
 MORTON_BITS = 21
@@ -65,3 +67,34 @@ def stratified_indices(n: int, n_rays, u):
     # floor((i + u) M / n) = floor((i M + floor(u M)) / n) for a whole n; i M < 2^55 fits 64 bits.
     x = U64(i) * U64(m) + U64(dr.mul_hi(mi.UInt32(u), m))
     return mi.UInt32(x // U64(int(n)))
+
+
+def draw_batch(seed: int, step: int, n_rays: int, n: int, samples: int, order=None):
+    """Ray indices and per-sample jitter of training step ``step``.
+
+    Args:
+        seed: the ensemble's seed.
+        step: the step (each draws anew).
+        n_rays: training rays to draw from.
+        n: rays per batch.
+        samples: samples per ray.
+        order: None (independent uniform draws), or ``mi.UInt32`` (n_rays,)
+            the rays' coherent order (:func:`ray_order`): one ray per stratum.
+
+    Returns:
+        ``(idx, jitter)``: ``mi.UInt32`` (n,) ray indices and ``mi.Float``
+        (n * samples,) jitter in [0, 1).
+    """
+    # Opaque keys: the step and ray count change every call but must not
+    # be baked into the kernel as literals (that would recompile per step).
+    base = (seed * 0x9E3779B1 + step * 0x85EBCA77) & 0xFFFFFFFF
+    key = dr.opaque(mi.UInt32, base)
+    key2 = dr.opaque(mi.UInt32, base ^ 0x5BD1E995)
+    m = dr.opaque(mi.UInt32, n_rays)
+    i = dr.arange(mi.UInt32, n)
+    if order is not None:
+        idx = dr.gather(mi.UInt32, order, stratified_indices(n, m, hash_u32(hash_u32(i) ^ key)))
+    else:  # mul_hi maps a 32-bit hash uniformly onto [0, M) without modulo bias.
+        idx = dr.mul_hi(hash_u32(hash_u32(i) ^ key), m)
+    jitter = uniform_from_u32(hash_u32(hash_u32(dr.arange(mi.UInt32, n * samples)) ^ key2))
+    return idx, jitter

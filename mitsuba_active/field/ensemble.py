@@ -26,7 +26,7 @@ from tqdm import tqdm
 from ..checks import is_whole
 from ..errors import TrainingDiverged, UserError
 from ..variant import require_variant
-from .batch import ray_order, stratified_indices
+from .batch import draw_batch, ray_order
 from .bootstrap import BOOTSTRAP_KINDS, bootstrap_weights, weighted
 from .config import MAX_MEMBERS, MAX_STEPS, FieldConfig
 from .fisher import fisher_diagonal
@@ -36,7 +36,7 @@ from .io import load_ensemble, save_ensemble
 from .occupancy import cell_opacity
 from .regularisers import grid_smoothness, random_background, ray_regularisers
 from .render import render_members
-from .samples import FieldParams, hash_u32, uniform_from_u32
+from .samples import FieldParams
 from .sky import sky_size
 from .view import n_coefficients, view_layout
 
@@ -377,28 +377,15 @@ class Ensemble:
         coarse = cfg.occupancy_resolution > 0 and self._step < int(cfg.coarse_steps)
         return max(1, n // 2) if coarse else n
 
-    def _batch(self, step: int):
-        """Ray indices and per-sample jitter of one step, made in-kernel.
+    def _batch(self):
+        """Ray indices and per-sample jitter of this step (:func:`.batch.draw_batch`).
 
         All members see the same rays and samples in a step (that is what
         lets them share one lookup kernel); they differ by initialisation.
         """
         cfg = self.config
-        N, S = int(cfg.batch_rays), self._training_samples()
-        # Opaque keys: the step and ray count change every call but must not
-        # be baked into the kernel as literals (that would recompile per step).
-        base = (self.seed * 0x9E3779B1 + step * 0x85EBCA77) & 0xFFFFFFFF
-        key = dr.opaque(mi.UInt32, base)
-        key2 = dr.opaque(mi.UInt32, base ^ 0x5BD1E995)
-        n_rays = dr.opaque(mi.UInt32, self._n_rays)
-        i = dr.arange(mi.UInt32, N)
-        if cfg.coherent_batches:  # one ray per stratum of the sorted rays (see .batch)
-            strata = stratified_indices(N, n_rays, hash_u32(hash_u32(i) ^ key))
-            idx = dr.gather(mi.UInt32, self._rays["order"], strata)
-        else:  # mul_hi maps a 32-bit hash uniformly onto [0, M) without modulo bias.
-            idx = dr.mul_hi(hash_u32(hash_u32(i) ^ key), n_rays)
-        jitter = uniform_from_u32(hash_u32(hash_u32(dr.arange(mi.UInt32, N * S)) ^ key2))
-        return idx, jitter
+        order = self._rays["order"] if cfg.coherent_batches else None
+        return draw_batch(self.seed, self._step, self._n_rays, int(cfg.batch_rays), self._training_samples(), order)
 
     def ray_weights(self, origins, indices) -> np.ndarray:
         """(K, N) float32 weights of training rays in each member's loss:
@@ -427,7 +414,7 @@ class Ensemble:
             raise UserError("train: call set_rays() first")
         cfg = self.config
         N = int(cfg.batch_rays)
-        idx, jitter = self._batch(self._step)
+        idx, jitter = self._batch()
         R = self._rays
         o = dr.gather(mi.Point3f, R["o"], idx)
         d = dr.gather(mi.Vector3f, R["d"], idx)

@@ -185,7 +185,7 @@ def grid_only_times(ks, rays, cfg, steps, warmup):
     for j in range(warmup + steps):
         for k, e in ens.items():
             t0 = time.perf_counter()
-            idx, jitter = e._batch(j)
+            idx, jitter = e._batch()
             o = dr.gather(mi.Point3f, e._rays["o"], idx)
             d = dr.gather(mi.Vector3f, e._rays["d"], idx)
             raws = lookup_samples(e.params(), sample_along_rays(o, d, e.params(), jitter))

@@ -725,7 +725,9 @@ def test_the_default_grid_follows_the_images_width():
     assert finest == [32, 32, 64, 128, 256] and grids[200].log2_table_size == 15
     assert [grids[w].n_samples for w in grids] == [64, 64, 128, 256, 256]
     assert [grids[w].occupancy_resolution > 0 for w in grids] == [False, False, True, True, True]
-    assert [(grids[w].view_degree, grids[w].distortion_weight) for w in grids] == [(0, 0.0)] * 2 + [(1, 0.01)] * 3
+    assert [(grids[w].view_degree, grids[w].distortion_weight) for w in grids] == \
+        [(0, 0.0)] * 2 + [(1, 0.01)] + [(2, 0.01)] * 2
+    assert [grids[w].view_resolution for w in grids][2:] == [8, 16, 16]
     planner = FieldConfig.preset("default", width=200, planner=True)
     assert (planner.view_degree, planner.distortion_weight) == (0, 0.0)
     # Up to 64 pixels it is the fast preset's grid; the planner's ensemble keeps it at every width.

@@ -308,7 +308,7 @@ def check_agreement(ens: Ensemble, trainer: Trainer, rays) -> dict:
     colour_err = float(np.abs(ours["rgb"][0] - rgb.numpy()).max())
     opacity_err = float(np.abs(ours["opacity"][0] - opac.numpy()).max())
 
-    idx, jitter = ens._batch(ens._step)
+    idx, jitter = ens._batch()
     idx = torch.tensor(np.array(idx, np.int64))
     jitter = torch.tensor(np.array(jitter, np.float32).reshape(cfg.batch_rays, cfg.n_samples))
     t0 = time.perf_counter()  # our first step traces its kernels (compiled, or read from Dr.Jit's cache)

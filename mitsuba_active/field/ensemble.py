@@ -49,6 +49,9 @@ MIN_BOX_SIDE = 0.05
 #: per channel (the sigmoid's gradient vanishes at its ends).
 BACKGROUND_CLIP = 0.02
 
+#: The optimised parameters that learn at ``FieldConfig.lr_background`` (the others at ``lr``).
+BACKGROUND_KEYS = ("background", "sky")
+
 
 def _member_seeds(seed: int, n: int):
     """Independent per-member seed sequences; member k does not depend on n."""
@@ -149,8 +152,7 @@ class Ensemble:
         if cfg.background_resolution > 0:  # the constant background until views ask for more
             self._opt["sky"] = mi.Float(np.zeros(self.sky_size, np.float32) if sky is None else
                                         np.ascontiguousarray(sky, np.float32).ravel())
-            self._opt.set_learning_rate({"sky": cfg.lr_background})
-        self._opt.set_learning_rate({"background": cfg.lr_background})
+        self._opt.set_learning_rate({key: cfg.lr_background for key in BACKGROUND_KEYS if key in self._opt.keys()})
         if adam_state is not None:
             for key, (t, m, v) in adam_state.items():
                 value, promoted, lr, _ = self._opt.state[key]
@@ -487,7 +489,7 @@ class Ensemble:
     def _decay_learning_rates(self, factor: float):
         """Every parameter's learning rate, times ``factor``."""
         cfg = self.config
-        rates = {key: factor * (cfg.lr_background if key in ("background", "sky") else cfg.lr)
+        rates = {key: factor * (cfg.lr_background if key in BACKGROUND_KEYS else cfg.lr)
                  for key in self._opt.keys()}
         self._opt.set_learning_rate(rates)
 
@@ -541,12 +543,11 @@ class Ensemble:
     def _render_all(self, origins, directions):
         """Render every ray with every member; numpy (K, N, ...) outputs."""
         rays = padded_rays(origins, directions, self.config.render_batch)
-        B = rays.batch
         rgb, dist, opac = [], [], []
         params = self.params()
         with dr.suspend_grad():
-            for s in range(0, rays.n_pad, B):
-                outs = self.render_dr(params, mi.Point3f(rays.o[s:s + B].T), mi.Vector3f(rays.d[s:s + B].T), s)
+            for s, o, d in rays.batches():
+                outs = self.render_dr(params, o, d, s)
                 dr.eval(outs)
                 rgb.append([np.array(out["rgb"]).T for out in outs])
                 dist.append([np.array(out["distance"]) for out in outs])

@@ -28,6 +28,7 @@ def fisher_diagonal(ens, origins, directions, member: int, probes: int, seed: in
         raise UserError(f"fisher_diag: probes must be a whole number >= 1, got {probes!r}")
     rays = padded_rays(origins, directions, ens.config.render_batch)
     n, n_pad, B = rays.n, rays.n_pad, rays.batch
+    batches = list(rays.batches())  # converted once for every probe
     rng = np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(int(member),)))
     grid = mi.Float(dr.detach(ens._opt["grid"]))
     bg = mi.Float(dr.detach(ens._opt["background"]))
@@ -38,9 +39,8 @@ def fisher_diagonal(ens, origins, directions, member: int, probes: int, seed: in
         dr.enable_grad(grid, bg)
         params = ens.params()
         params.grid, params.background = grid, bg
-        for s in range(0, n_pad, B):
-            out = render_flat(params, mi.Point3f(rays.o[s:s + B].T),
-                              mi.Vector3f(rays.d[s:s + B].T), int(member))
+        for s, o, d in batches:
+            out = render_flat(params, o, d, int(member))
             vb = mi.Color3f(v[s:s + B].T)
             dr.backward(dr.sum(dr.dot(out["rgb"], vb)))
         gg = np.array(dr.grad(grid), np.float64).reshape(-1, ens.n_members, 4)[:, member]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import mitsuba as mi
 import numpy as np
 
 from ..errors import UserError
@@ -58,18 +59,28 @@ class PaddedRays:
     """Rays padded to whole inference batches (see :func:`padded_rays`).
 
     Attributes:
-        o, d: (n_pad, 3) float32 origins and unit directions; the padding
-            rays start at the origin and look along +z.
+        o, d: (n_pad, 3) float32 origins and unit directions, ``n_pad`` a
+            whole number (>= 1) of batches; the padding rays start at the
+            origin and look along +z.
         n: rays given (the first ``n`` rows).
-        n_pad: rows, a whole number (>= 1) of batches.
         batch: rays per batch.
     """
 
     o: np.ndarray
     d: np.ndarray
     n: int
-    n_pad: int
     batch: int
+
+    @property
+    def n_pad(self) -> int:
+        """Rows, padding included."""
+        return self.o.shape[0]
+
+    def batches(self):
+        """Each batch as ``(offset, origins, directions)``: its first row, and
+        ``mi.Point3f`` / ``mi.Vector3f`` of ``batch`` rays."""
+        for s in range(0, self.n_pad, self.batch):
+            yield s, mi.Point3f(self.o[s:s + self.batch].T), mi.Vector3f(self.d[s:s + self.batch].T)
 
 
 def padded_rays(origins, directions, render_batch: int, what: str = "rendering") -> PaddedRays:
@@ -85,4 +96,4 @@ def padded_rays(origins, directions, render_batch: int, what: str = "rendering")
     dp = np.zeros((n_pad, 3), np.float32)
     dp[:, 2] = 1.0
     op[:n], dp[:n] = o, d
-    return PaddedRays(op, dp, n, n_pad, batch)
+    return PaddedRays(op, dp, n, batch)

@@ -24,7 +24,8 @@ budget lets most of them capture, so that the travel budget ends most runs
 
 Prints the per-scene, per-seed table, the means over scenes and seeds, the
 paired differences (cost-aware less cost-blind, less ``even``; continuous
-less pool) and writes them to ``--out`` as JSON.
+less pool) and writes them to ``--out`` as JSON. ``--keep FILE`` joins an
+earlier ``--out``'s scores of the runs this call does not make.
 
 Usage::
 
@@ -136,6 +137,8 @@ def main() -> None:
     ap.add_argument("--runs", default=str(ROOT / "bench/travel_suite"), help="run folders")
     ap.add_argument("--out", default=str(ROOT / "benchmarks/results/travel_suite.json"))
     ap.add_argument("--report-only", action="store_true", help="read the finished runs, run nothing")
+    ap.add_argument("--keep", help="an earlier --out whose scores join this call's, for the configurations, "
+                                   "scenes and seeds that this call does not run")
     args = ap.parse_args()
     suite = load_suite(args.suite)
     runs = Path(args.runs)
@@ -161,6 +164,12 @@ def main() -> None:
                 rec = finished_record(job)
                 if rec is not None:
                     results.setdefault(f"{scene}/{seed}", {})[name] = score(rec, name, args.views)
+    earlier = json.loads(Path(args.keep).read_text()) if args.keep else {}
+    if earlier:  # the earlier scores first, in their order; this call's replace theirs
+        kept = earlier["runs"]
+        results = {key: {**kept.get(key, {}), **results.get(key, {})} for key in {**kept, **results}}
+        diameters = {**earlier.get("scene_diameters", {}), **diameters}
+        configs = [c for c in CONFIGS if any(c in row for row in results.values())]
     lines = [f"| scene/seed | {' | '.join(configs)} |", "|---" * (len(configs) + 1) + "|"]
     for key, row in results.items():
         cells = []
@@ -186,12 +195,15 @@ def main() -> None:
         print(f"{k}: " + "; ".join(f"{m} mean {d['mean']} median {d['median']} wins {d['wins']}/{d['n']}"
                                    for m, d in v.items()))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps({
+    out = {
         "command": "python " + " ".join(sys.argv), "profile": args.profile, "embodiment": "drone",
         "diameters": args.diameters, "cost_weight": args.cost_weight, "max_views": args.max_views,
         "views": args.views, "scene_diameters": diameters, "runs": results, "means": means,
         "comparisons": comparisons, "seconds": seconds,
-        "machine": platform.machine(), "cpus": os.cpu_count(), "variant": mi.variant()}, indent=1) + "\n")
+        "machine": platform.machine(), "cpus": os.cpu_count(), "variant": mi.variant()}
+    # What only the earlier file has (a sweep's figures) stays in it.
+    out.update({k: v for k, v in earlier.items() if k not in out})
+    Path(args.out).write_text(json.dumps(out, indent=1) + "\n")
 
 
 if __name__ == "__main__":

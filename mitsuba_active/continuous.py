@@ -1,4 +1,4 @@
-"""Continuous candidates: fresh poses on the rig's surface each round, and perturbations around a pose.
+"""Continuous candidates: fresh poses on and inside the rig's surface each round, and perturbations around a pose.
 
 The rig's surface is fitted to its candidate pool: the point every camera
 looks at (least squares over their optical axes) and an axis-aligned
@@ -13,6 +13,10 @@ the surface meets its plane. Poses out of the embodiment's reach, inside
 the geometry, or at a held-out view's place are dropped, and so are those
 nearer a captured view than the pool's cameras are to each other (its
 median nearest-neighbour angle), as near as the pool's own candidates come.
+A camera that can fly may also come nearer the centre than the rig does,
+where the object fills more of its view: with ``nearest`` below 1, each
+pose's distance from the centre is drawn between that share of the
+surface's and the surface's own (uniformly), and perturbations vary it too.
 
 A planner's score of a pose is an estimate from a few hundred rays, and a
 noisy one: the best of many such scores is largely the luckiest draw. So
@@ -97,11 +101,18 @@ class RigSurface:
         ua, ub = (self._unit((np.asarray(x, dtype=np.float64) - self.centre) / self.axes) for x in (a, b))
         return np.arccos(np.clip(ua @ ub.T, -1.0, 1.0))
 
-    def positions(self, t: np.ndarray, phi: np.ndarray) -> np.ndarray:
-        """(N, 3) scene units: the surface's points at band coordinates ``t``, ``phi`` (N,)."""
+    def positions(self, t: np.ndarray, phi: np.ndarray, scale: np.ndarray | None = None) -> np.ndarray:
+        """(N, 3) scene units: the surface's points at band coordinates ``t``, ``phi`` (N,), each moved
+        towards the centre to ``scale`` (N,) of its distance where given."""
         s = np.sqrt(np.clip(1 - t ** 2, 0, 1))
         u = t[:, None] * self.up + s[:, None] * (np.cos(phi)[:, None] * self.e1 + np.sin(phi)[:, None] * self.e2)
+        if scale is not None:
+            u = u * np.asarray(scale, dtype=np.float64)[:, None]
         return self.centre + self.axes * u
+
+    def scale(self, position: np.ndarray) -> float:
+        """The share of the surface's distance from the centre at which ``position`` (3,) lies."""
+        return float(np.linalg.norm((np.asarray(position, dtype=np.float64) - self.centre) / self.axes))
 
     def height_t(self, height: float) -> float | None:
         """The band coordinate ``t`` of the plane at ``height`` along up (None: the plane misses the band)."""
@@ -123,10 +134,16 @@ class PoseSampler:
         embodiment: its ``reachable`` and (a ground robot's) ``height`` decide where the camera can be.
         heldout: held-out cameras, whose places no pose takes.
         free_space: ``(N, 3) -> (N,) bool``, points not inside the geometry (None: all are).
+        nearest: the least share of the surface's distance from the centre a pose comes to, in (0, 1]
+            (1: every pose on the surface).
     """
 
-    def __init__(self, surface: RigSurface, embodiment, heldout: list[Camera], free_space=None):
+    def __init__(self, surface: RigSurface, embodiment, heldout: list[Camera], free_space=None,
+                 nearest: float = 1.0):
+        if not 0.0 < nearest <= 1.0:
+            raise ValueError(f"nearest must be in (0, 1], got {nearest!r}")
         self.surface, self.embodiment, self.free_space = surface, embodiment, free_space
+        self.nearest = float(nearest)
         self.heldout = np.stack([c.position for c in heldout]) if heldout else np.zeros((0, 3))
         # Farther than this from every held-out view's place: never one of its poses.
         self.apart = 1e-3 * float(np.abs(surface.axes).mean())
@@ -135,8 +152,8 @@ class PoseSampler:
         height = getattr(self.embodiment, "height", None)
         return None if height is None else self.surface.height_t(height)
 
-    def _keep(self, t, phi, n, avoid=None) -> list[Camera]:
-        points = self.surface.positions(t, phi)
+    def _keep(self, t, phi, n, avoid=None, scale=None) -> list[Camera]:
+        points = self.surface.positions(t, phi, scale)
         height = getattr(self.embodiment, "height", None)
         if height is not None:  # exactly in the base's plane
             points = points - np.outer(points @ self.surface.up - height, self.surface.up)
@@ -164,12 +181,15 @@ class PoseSampler:
         if fixed is None and getattr(self.embodiment, "height", None) is not None:
             return []  # the ground robot's plane misses the rig
         t = np.full(m, fixed) if fixed is not None else rng.uniform(lo, hi, m)
-        return self._keep(t, rng.uniform(0, 2 * np.pi, m), n, avoid)
+        phi = rng.uniform(0, 2 * np.pi, m)
+        # Drawn only where it varies: runs on the surface alone keep their draws.
+        scale = rng.uniform(self.nearest, 1.0, m) if self.nearest < 1.0 else None
+        return self._keep(t, phi, n, avoid, scale)
 
     def around(self, camera: Camera, rng: np.random.Generator, n: int = PERTURBATIONS,
                avoid: np.ndarray | None = None) -> list[Camera]:
-        """Up to ``n`` poses near ``camera``'s on the surface (a ground robot's: in its plane), apart
-        from ``avoid`` as :meth:`sample`'s are."""
+        """Up to ``n`` poses near ``camera``'s (a ground robot's: in its plane), as near the centre as
+        :meth:`sample`'s may be and apart from ``avoid`` as they are."""
         s = self.surface
         u = s._unit((camera.position - s.centre) / s.axes)
         t0, phi0 = float(u @ s.up), math.atan2(float(u @ s.e2), float(u @ s.e1))
@@ -179,7 +199,10 @@ class PoseSampler:
         t = (np.full(m, fixed) if fixed is not None else
              np.clip(t0 + sigma * math.sqrt(max(1 - t0 ** 2, 0.0)) * rng.standard_normal(m), *s.band))
         phi = phi0 + sigma / max(math.sqrt(max(1 - t0 ** 2, 0.0)), 0.1) * rng.standard_normal(m)
-        return self._keep(t, phi, n, avoid)
+        scale = None
+        if self.nearest < 1.0:
+            scale = np.clip(s.scale(camera.position) + 0.5 * sigma * rng.standard_normal(m), self.nearest, 1.0)
+        return self._keep(t, phi, n, avoid, scale)
 
 
 def choose_among(planner, journey, state: PlanningState, shown_first: list[Camera], offers: list[Camera],

@@ -38,7 +38,12 @@ TRAVEL_SETTINGS = {
     "candidates_mode": ("pool", "pool: choose from the rig's fixed candidates; continuous: score a fresh sample of "
                                 "reachable poses on the rig each round (as many as --candidates), refine around "
                                 "the best, capture it (scenes only)."),
+    "nearest": (0.75, "With --candidates-mode continuous around an object: the nearest a fresh pose comes to "
+                      "the centre, as a share of the rig's distance (1: on the rig only); the interior rig's "
+                      "poses stay on it."),
 }
+#: The settings whose value a record from before them ran as, where that is not the default.
+TRAVEL_LEGACY = {"nearest": 1.0}
 
 #: The ways a planner is offered poses (``candidates_mode``).
 CANDIDATE_MODES = ("pool", "continuous")
@@ -64,6 +69,8 @@ def travel_problems(cfg) -> list[str]:
         problems.append(f"along_the_way must be a positive spacing in scene units, got {cfg.along_the_way!r}")
     if not isinstance(cfg.candidates_mode, str) or cfg.candidates_mode not in CANDIDATE_MODES:
         problems.append(unknown_choice("candidates mode", cfg.candidates_mode, CANDIDATE_MODES))
+    if not (is_number(cfg.nearest, finite=True) and 0 < cfg.nearest <= 1):
+        problems.append(f"nearest (--nearest) must be a share of the rig's distance in (0, 1], got {cfg.nearest!r}")
     if cfg.candidates_mode == "continuous" and getattr(cfg, "rig", None) == "xml":
         problems.append("candidates_mode continuous (--candidates-mode) samples the rig's surface, and --rig xml "
                         "has none (choose a generated rig)")

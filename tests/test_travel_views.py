@@ -8,6 +8,7 @@ from click.testing import CliRunner
 from mitsuba_active.cameras import Camera
 from mitsuba_active.cli import main
 from mitsuba_active.continuous import PoseSampler, RigSurface
+from mitsuba_active.errors import UserError
 from mitsuba_active.embodiments import Route, make_embodiment
 from mitsuba_active.record import ALONG_THE_WAY, CONTINUOUS, along_the_way_views, run_cameras
 from mitsuba_active.rigs import check_disjoint
@@ -87,6 +88,9 @@ def test_new_poses_need_a_moving_camera_and_a_scene(spot_xml, tmp_path):
             (spot_xml, ["--along-the-way", "0.2"], "along_the_way (--along-the-way) applies to a moving"),
             (spot_xml, ["--along-the-way", "-1", "--embodiment", "drone"], "along_the_way must be a positive"),
             (spot_xml, ["--candidates-mode", "continuous", "--rig", "xml"], "--rig xml has none"),
+            (spot_xml, ["--candidates-mode", "continuous", "--embodiment", "drone", "--nearest", "1.2"],
+             "nearest (--nearest) must be a share"),
+            (spot_xml, ["--embodiment", "drone", "--nearest", "0.8"], "--nearest applies to continuous candidates"),
             (data, ["--candidates-mode", "continuous", "--heldout", "2", "--budget", "4"], "only a scene can")):
         res = runner.invoke(main, ["plan", str(scene), "--out", str(tmp_path / "o"), *args])
         assert res.exit_code == 2 and needle in res.output and "Traceback" not in res.output, res.output
@@ -146,3 +150,45 @@ def test_a_resumed_continuous_run_captures_the_same_cameras(sphere_xml, tmp_path
     assert len(read_record(tmp_path / "b" / "run.json")["captured"]) == 3
     again = quiet(tiny_source(sphere_xml, n_candidates=8, n_heldout=2, resolution=8), cfg, tmp_path / "b")
     assert again["captured"] == rec["captured"] and run_cameras(again) == cams
+
+
+def test_continuous_poses_come_nearer_than_the_rig_down_to_the_share_asked(sphere_xml):
+    from mitsuba_active.run import config_differences
+
+    source = tiny_source(sphere_xml, n_candidates=20, n_heldout=4, resolution=8)
+    surface = RigSurface(source.candidates, source.scene.up)
+    drone = make_embodiment("drone", source.scene)
+    sampler = PoseSampler(surface, drone, source.heldout, source.scene.free_space, nearest=0.6)
+    cams = sampler.sample(np.random.default_rng(0), 40)
+    share = np.array([surface.scale(c.position) for c in cams])
+    assert len(cams) == 40 and share.min() >= 0.6 - 1e-9 and share.max() <= 1 + 1e-9
+    assert (share < 0.8).sum() >= 10 and (share > 0.8).sum() >= 10  # spread over the whole range
+    assert drone.reachable(np.stack([c.position for c in cams])).all()
+    for cam in cams:  # each still looks at the centre
+        to_centre = surface.centre - cam.position
+        assert np.allclose(cam.forward, to_centre / np.linalg.norm(to_centre), atol=1e-6)
+    parent = min(cams, key=lambda c: surface.scale(c.position))
+    near = [surface.scale(c.position) for c in sampler.around(parent, np.random.default_rng(1))]
+    assert near and min(near) >= 0.6 - 1e-9 and max(near) < surface.scale(parent.position) + 0.3
+    with pytest.raises(ValueError, match="nearest"):
+        PoseSampler(surface, drone, source.heldout, nearest=0.0)
+    for bad in (0, 1.5, "near"):
+        with pytest.raises(UserError, match="nearest"):
+            RunConfig(scene=str(sphere_xml), nearest=bad).validate()
+    # A record from before this setting sampled the rig's surface alone.
+    cfg = {**TINY, "scene": "s.xml", "planner": "rfe", "candidates_mode": "continuous"}
+    assert config_differences(cfg, {**cfg, "nearest": 1.0}) == []
+    assert config_differences(cfg, {**cfg, "nearest": 0.75}) == ["nearest: 1.0 -> 0.75"]
+    # A pool's run is the same run whatever the setting: an older one goes on (and bench keeps it).
+    pool = {**cfg, "candidates_mode": "pool"}
+    assert config_differences(pool, {**pool, "nearest": 0.75}) == []
+
+
+def test_a_rooms_continuous_poses_stay_on_its_rig_and_an_objects_come_nearer(sphere_xml, shared_data, tmp_path):
+    room = shared_data / "mitsuba" / "cbox" / "cbox.xml"
+    for xml, nearest in ((room, 1.0), (sphere_xml, 0.75)):
+        cfg = RunConfig(scene=str(xml), planner="rfe", embodiment="drone", candidates_mode="continuous",
+                        budget=4, eval_views=[4], **TINY)
+        run = Run(tiny_source(xml, n_candidates=8, n_heldout=2, resolution=8), cfg, tmp_path / xml.stem,
+                  progress=False, log=lambda m: None)
+        assert run.sampler.nearest == nearest

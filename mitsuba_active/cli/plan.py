@@ -131,6 +131,9 @@ def plan(scene_path, planner, budget, initial_views, ensemble, batch, seed, rig,
     if eval_steps is not None:
         cfg.eval_steps = eval_steps
     cfg.validate()
+    if "nearest" in given and cfg.candidates_mode != "continuous":
+        raise UserError("--nearest applies to continuous candidates (--candidates-mode continuous); "
+                        "a pool's poses stay where the rig put them")
     dropped = sorted(set(cfg.eval_views) - set(cfg.report_counts()))
     if dropped and "eval_views" in given:
         click.echo(f"note: --eval-views {', '.join(map(str, dropped))} left out: below the {cfg.initial_views} "

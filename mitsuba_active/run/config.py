@@ -52,6 +52,7 @@ class RunConfig:
             each route, looking at the scene's centre (None: none).
         candidates_mode: ``pool`` (the rig's fixed candidates) or ``continuous`` (a fresh
             sample of reachable poses on the rig each round, refined around the best).
+        nearest: continuous poses' least distance from the rig's centre, as a share of the rig's.
     """
 
     scene: str = ""
@@ -86,6 +87,7 @@ class RunConfig:
     cost_weight: float = TRAVEL_SETTINGS["cost_weight"][0]
     along_the_way: float | None = TRAVEL_SETTINGS["along_the_way"][0]
     candidates_mode: str = TRAVEL_SETTINGS["candidates_mode"][0]
+    nearest: float = TRAVEL_SETTINGS["nearest"][0]
 
     def __post_init__(self):
         if isinstance(self.scene, os.PathLike):  # run.json holds it as text

@@ -19,7 +19,7 @@ from ..imageio_utils import new_entries, remove_new
 from ..planners import make_planner
 from ..planners.base import is_planner_file, planner_label
 from ..record import json_default, read_record
-from ..travel import TRAVEL_SETTINGS
+from ..travel import TRAVEL_LEGACY, TRAVEL_SETTINGS
 
 
 def resume_obstacles(rec: dict, current: dict, content_hash, planner_digest, cameras=None) -> dict:
@@ -98,7 +98,9 @@ def config_changes(recorded, current: dict, compare_scene: bool = True) -> dict:
             config["ensemble"] = planner.ensemble_size(config["ensemble"]) if planner.needs_ensemble else None
         config.setdefault("field_preset", LEGACY_PRESET)  # a record from before presets
         for name, (default, _) in TRAVEL_SETTINGS.items():  # a record from before travel ran as teleport
-            config.setdefault(name, default)
+            config.setdefault(name, TRAVEL_LEGACY.get(name, default))
+        if config["candidates_mode"] != "continuous":  # only continuous poses come nearer: any value is one run
+            config.pop("nearest")
         scene = config.pop("scene", None)
         if compare_scene:
             config["scene"] = str(Path(scene).resolve()) if scene else scene

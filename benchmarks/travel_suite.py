@@ -11,6 +11,7 @@ candidates, 20 held-out views) in these configurations:
 * ``even-tour``: ``even`` drawing all its views at once (a batch of
   ``--max-views``) and visiting them in a short tour, nearest first: the
   cost-aware form of a planner that has no scores to weigh;
+* ``rfe-cost-continuous``: ``rfe-cost`` with continuous candidates;
 * ``rfe-pool``: RFE on the pool of candidates, ``--views`` views, no travel budget;
 * ``rfe-continuous``: the same with continuous candidates.
 
@@ -55,7 +56,7 @@ from mitsuba_active.scene import load_scene  # noqa: E402
 from mitsuba_active.travel import diameter_of  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-TRAVEL_CONFIGS = ("rfe", "rfe-cost", "even", "even-tour")
+TRAVEL_CONFIGS = ("rfe", "rfe-cost", "even", "even-tour", "rfe-cost-continuous")
 VIEW_CONFIGS = ("rfe-pool", "rfe-continuous")
 CONFIGS = TRAVEL_CONFIGS + VIEW_CONFIGS
 METRICS = ("psnr", "psnr_fg")
@@ -66,7 +67,9 @@ def config_overrides(name: str, args, travel_budget: float) -> tuple[str, dict]:
     common = {"embodiment": "drone", "eval_views": sorted({10, args.views})}
     if name in TRAVEL_CONFIGS:
         settings = {**common, "budget": args.max_views, "travel_budget": round(travel_budget, 6),
-                    "cost_weight": args.cost_weight if name == "rfe-cost" else 0.0}
+                    "cost_weight": args.cost_weight if name.startswith("rfe-cost") else 0.0}
+        if name == "rfe-cost-continuous":
+            settings["candidates_mode"] = "continuous"
         if name == "even-tour":
             settings["batch"] = args.max_views
         return ("even" if name.startswith("even") else "rfe"), settings
@@ -185,6 +188,7 @@ def main() -> None:
     lines.append(f"| mean | {' | '.join(cells)} |")
     comparisons = {}
     for a, b in (("rfe-cost", "rfe"), ("rfe-cost", "even"), ("rfe-cost", "even-tour"), ("rfe", "even"),
+                 ("rfe-cost-continuous", "rfe-cost"),
                  ("rfe-continuous", "rfe-pool")):
         if any(a in row and b in row for row in results.values()):
             comparisons[f"{a} - {b}"] = {m: paired(results, a, b, m) for m in (*METRICS, "psnr@10", "views")}

@@ -24,7 +24,8 @@ a round's first look (the fresh sample, scored as pool candidates are)
 only shortlists; its best few and perturbations around them are scored
 again on two fresh draws of pixels, the same pixels for all of them, and a
 perturbation replaces its pose only where its lead passes the noise that
-the two draws' disagreement shows.
+the two draws' disagreement shows. A journey that weighs travel takes the
+first look's picks, weighed against travel over the whole sample.
 """
 
 from __future__ import annotations
@@ -258,7 +259,8 @@ def choose_fresh(planner, journey, sampler: PoseSampler, state: PlanningState, o
     views captured (``taken``: the cameras of the distinct run indices ``owners``), then, where it
     scores, its picks and next best (:data:`SECOND_LOOK` in all) again, and perturbations around them,
     which replace a pose only where they beat it (:func:`refined_scores`); the picks are the best
-    of that second look. Fresh and perturbed poses keep the pool's gap from the captured views.
+    of that second look, or where ``journey`` weighs travel, the first look's weighed picks. Fresh and
+    perturbed poses keep the pool's gap from the captured views.
 
     Returns ``(chosen, scores)``: each pick a run index of ``owners`` (a view again) or a new
     :class:`~mitsuba_active.cameras.Camera`; ``chosen`` is None when no pose is reachable."""
@@ -270,7 +272,9 @@ def choose_fresh(planner, journey, sampler: PoseSampler, state: PlanningState, o
     captured = [where[i] for i in state.captured]
     picks, scores = choose_among(planner, journey, state, taken, offers, captured, batch, cfg)
     shown = list(taken) + offers
-    if scores is None:
+    if scores is None or journey.weighs_travel:
+        # Weighed against travel over the whole sample, as a pool's are: over a second look's few near-best
+        # poses their utilities would span [0, 1] alone and outweigh the travel cost.
         return [owners[i] if i < len(taken) else shown[i] for i in picks], scores
     # A second look at the first look's picks and next best, and around them, scored on fresh pixels:
     # a pose's first score chose it, so it is biased upwards (more so the more poses were scored).

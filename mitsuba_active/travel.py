@@ -131,6 +131,11 @@ class Journey:
     def time(self) -> float:
         return self.legs[-1]["time"] if self.legs else 0.0
 
+    @property
+    def weighs_travel(self) -> bool:
+        """Whether :meth:`weigh` chooses the picks again against the travel cost (a cost weight, and a place)."""
+        return self.cfg.cost_weight > 0 and self.position is not None
+
     def route(self, index: int) -> Route:
         """The route from the camera's position to candidate ``index`` (none before the first capture)."""
         target = self.positions[index]

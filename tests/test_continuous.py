@@ -28,6 +28,8 @@ class Scored:
 class Still:
     """A journey that keeps the planner's picks."""
 
+    weighs_travel = False
+
     def weigh(self, picks, scores, allowed, positions=None, views=None):
         return list(picks)
 
@@ -84,3 +86,33 @@ def test_near_poses_replace_a_pick_for_a_real_lead_not_for_noise(sphere_xml):
     side = np.array([0.3, 0.8, -0.5])
     moved, gains = run_rounds(sphere_xml, lambda pos, rng: pos @ side)
     assert moved.mean() > 0.5 and (gains >= 0).all() and gains.max() > 0
+
+
+class Near(Still):
+    """A journey that weighs travel: it picks the allowed pose nearest ``here``."""
+
+    weighs_travel = True
+
+    def __init__(self, here):
+        self.here = here
+
+    def weigh(self, picks, scores, allowed, positions=None, views=None):
+        gaps = np.where(allowed, np.linalg.norm(positions - self.here, axis=1), np.inf)
+        return [int(np.argmin(gaps))]
+
+
+def test_a_journey_that_weighs_travel_takes_the_first_looks_weighed_pick(sphere_xml):
+    source, surface, sampler = setup(sphere_xml)
+    cfg = SimpleNamespace(candidates=30, rays_per_candidate=8, seed=0)
+    taken = source.candidates[:2]
+    state = PlanningState(list(source.candidates), [0, 1], None, None, np.random.default_rng(7))
+    side = np.array([0.3, 0.8, -0.5])  # scores that a second look would climb away from here
+    here = taken[0].position
+    for r in range(6):
+        rng = np.random.default_rng([r, 2])
+        offers = sampler.sample(copy.deepcopy(rng), cfg.candidates, np.stack([c.position for c in taken]))
+        chosen, _ = choose_fresh(Scored(lambda pos, rng: pos @ side), Near(here), sampler, state, [0, 1], taken, 1,
+                                 rng, cfg)
+        fresh = np.stack([c.position for c in offers])
+        nearest = fresh[np.argmin(np.linalg.norm(fresh - here, axis=1))]
+        assert np.allclose(chosen[0].position, nearest)

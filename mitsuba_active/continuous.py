@@ -45,6 +45,8 @@ OVERSAMPLE = 4
 #: Perturbations of a pose, and their spread as a share of the pool's angular spacing.
 PERTURBATIONS = 6
 PERTURB_SHARE = 0.5
+#: The spread of a perturbation's distance from the centre (a share of the rig's), per radian of its angular spread.
+RADIAL_SHARE = 0.5
 #: The chance that noise alone lets some near pose replace a pose of the second look (the leads'
 #: threshold is set for it over all the near poses compared).
 FALSE_LEAD = 0.1
@@ -202,7 +204,8 @@ class PoseSampler:
         phi = phi0 + sigma / max(math.sqrt(max(1 - t0 ** 2, 0.0)), 0.1) * rng.standard_normal(m)
         scale = None
         if self.nearest < 1.0:
-            scale = np.clip(s.scale(camera.position) + 0.5 * sigma * rng.standard_normal(m), self.nearest, 1.0)
+            spread = RADIAL_SHARE * sigma
+            scale = np.clip(s.scale(camera.position) + spread * rng.standard_normal(m), self.nearest, 1.0)
         return self._keep(t, phi, n, avoid, scale)
 
 

@@ -211,6 +211,12 @@ def auto_rig(scene) -> tuple[str, str]:
     return "sphere", scene.interior_reason or "an object seen from outside"
 
 
+def generated_rig(scene, rig: str) -> str:
+    """The kind of rig that ``rig`` generates cameras of for ``scene``: ``auto`` and ``xml`` (whose
+    held-out views need a kind) as :func:`auto_rig` picks, any other as named."""
+    return auto_rig(scene)[0] if rig in ("auto", "xml") else rig
+
+
 def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, height=None, fov=None):
     """Candidate and held-out cameras for a :class:`~mitsuba_active.scene.Scene`.
 
@@ -247,9 +253,7 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
             raise UserError(f"{scene.path} has no perspective sensor to use as candidates")
         height = height or _film_height(scene.sensors, width)
     height = height or width
-    generated = rig
-    if rig in ("auto", "xml"):  # the XML's own sensors get held-out views of the right kind
-        generated = auto_rig(scene)[0]
+    generated = generated_rig(scene, rig)  # under xml, for held-out views of the right kind
     if generated == "interior":
         fov = 70.0 if fov is None else fov
         near, far = clip_range(scene.radius, 2.0 * scene.radius)

@@ -202,12 +202,11 @@ class Journey:
         planner's picks stay. ``positions`` (C, 3): the candidates' positions when the planner was
         offered others than the journey's (continuous candidates), ``views`` (C, 3) their viewing directions.
         """
-        lam = self.cfg.cost_weight
         if positions is None:
             positions, views = self.positions, self.views
         positions = np.asarray(positions, dtype=np.float64)
-        if lam > 0 and scores is not None and self.position is not None:
-            weighed = self._weighed(len(picks), scores, allowed.copy(), lam, positions, views)
+        if self.weighs_travel and scores is not None:
+            weighed = self._weighed(len(picks), scores, allowed.copy(), self.cfg.cost_weight, positions, views)
             picks = weighed if len(weighed) == len(picks) else picks  # too few scored: the planner's stay
         return self._tour(picks, positions)
 

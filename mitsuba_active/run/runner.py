@@ -41,7 +41,7 @@ from ..planners.base import planner_digest, planner_label, planner_rng, unseen
 from ..protocol import evaluate_views, new_field
 from ..record import ALONG_THE_WAY, CONTINUOUS, RUN_FORMAT, along_the_way_views, json_default
 from ..report import contact_sheet, plot_metrics, plot_views
-from ..rigs import auto_rig
+from ..rigs import generated_rig
 from ..training import evaluation_note, has_distances, predict_view, scores_line, sparse_candidate_rays, train_on
 from ..travel import Journey, diameter_of, stops_along
 from ..travelplots import plot_travel
@@ -142,9 +142,8 @@ class Run:
                                diameter_of(source.bbox_min, source.bbox_max), [c.forward for c in source.candidates])
         self.sampler = None
         if cfg.candidates_mode == "continuous":
-            rig = auto_rig(source.scene)[0] if cfg.rig == "auto" else cfg.rig
             # A room's cameras see most from its walls: nearer its centre they see less of it.
-            nearest = 1.0 if rig == "interior" else cfg.nearest
+            nearest = 1.0 if generated_rig(source.scene, cfg.rig) == "interior" else cfg.nearest
             self.sampler = PoseSampler(RigSurface(source.candidates, source.scene.up), self.journey.embodiment,
                                        source.heldout, source.scene.free_space, nearest)
         self.rng = planner_rng(cfg.seed)

@@ -7,7 +7,7 @@ from mitsuba_active.cameras import camera_rays
 from mitsuba_active.errors import UserError
 from mitsuba_active.planners import PlanningState, make_planner
 from mitsuba_active.planners.hybrid import project, unseen_angles
-from mitsuba_active.rigs import fibonacci_sphere, interior
+from mitsuba_active.rigs import _cameras_around, fibonacci_sphere, interior
 from mitsuba_active.run import sparse_candidate_rays
 
 CANDS = fibonacci_sphere(12, [0, 0, 0], 3.0, 40.0, 8, 8)
@@ -80,6 +80,23 @@ def test_hybrid_batches_count_their_own_picks_as_captured():
     assert DIRS[picks[1]] @ DIRS[picks[0]] < max(DIRS[j] @ DIRS[picks[0]] for j in range(12) if j not in (0, picks[0]))
 
 
+def test_hybrid_lookahead_prefers_a_view_that_serves_many_candidates_to_a_lone_one():
+    """One view captured on +x; seven candidates crowd about +z, one stands
+    alone on -x. A view's own unseen surface favours the lone one; what it
+    adds to every candidate's view favours the crowd."""
+    crowd = [(np.sin(a) * np.cos(b), np.sin(a) * np.sin(b), np.cos(a))
+             for a, b in [(0.0, 0.0)] + [(0.25, k * np.pi / 3) for k in range(6)]]
+    dirs = np.array([(1.0, 0.0, 0.0)] + crowd + [(-1.0, 0.0, 0.0)])
+    cams = _cameras_around(np.zeros(3), 3.0, dirs, (0, 1, 0), 40.0, 8, 8, 1e-3, 1e4)
+    state = PlanningState(cams, [0], Sphere(lambda p: np.full(len(p), 0.01)), sparse_candidate_rays(cams, 64, 0))
+    lone = len(cams) - 1
+    assert make_planner("hybrid").select(state, 1)[0] == [lone]
+    picks, scores = make_planner("hybrid", lookahead=1).checked_select(state, 2)
+    assert 1 <= picks[0] <= 7 and scores[0] == 0.0 and scores[picks[0]] > 1.5 * scores[lone]
+    # The crowd's surface is seen from near by then: the lone view goes next.
+    assert picks[1] == lone
+
+
 class EmptyRoom:
     """A stand-in ensemble that has found no surface yet in a room (the box)."""
 
@@ -109,7 +126,7 @@ def test_hybrid_looks_where_no_camera_has_looked_when_no_surface_is_known_yet():
 
 def test_hybrid_and_rfe_options_are_checked():
     for bad in (dict(disagreement=-1), dict(min_opacity=1.0), dict(depth_resolution=0), dict(bootstrap="pixels"),
-                dict(power=0)):
+                dict(power=0), dict(lookahead=2), dict(lookahead=0.5)):
         with pytest.raises(UserError, match="hybrid|bootstrap"):
             make_planner("hybrid", **bad)
     for bad in (dict(min_opacity=-0.1), dict(bootstrap="all")):

@@ -15,6 +15,15 @@ rays. A candidate's score is the mean worth of its R rays: new
 surface, or surface seen only from far, counts most where the members
 disagree about it. Batches are greedy: each pick counts as captured (with
 the ensemble's depths) when the next is scored.
+
+With ``lookahead`` a candidate is scored by what it adds to every
+candidate's view, not only its own: the worth its cameras' depth maps take
+off all candidates' rays (each ray's worth falling to that of the angle
+from the candidate, where the candidate sees the ray's point nearer in
+angle than any captured camera), summed. The candidates stand in for the
+views a capture is judged from, so the pick that leaves the least unseen
+over all of them wins (greedy facility location; ``coverage`` instead
+fills the single largest gap).
 """
 
 from __future__ import annotations
@@ -104,6 +113,8 @@ class HybridPlanner(Planner):
             (rendered by the ensemble) that decide which points they see.
         bootstrap: the members' resampling of the captured rays, as rfe's.
         power: exponent of a ray's unseen angle (as a share of pi).
+        lookahead: 1 scores what a candidate adds to every candidate's rays;
+            0 only to its own.
     """
 
     name = "hybrid"
@@ -111,21 +122,23 @@ class HybridPlanner(Planner):
     min_members = 2
 
     def __init__(self, disagreement: float = 1.0, min_opacity: float = 0.5, depth_resolution: int = 16,
-                 bootstrap: str = "none", power: float = 1.0):
+                 bootstrap: str = "none", power: float = 1.0, lookahead: int = 0):
         if not (is_number(disagreement, finite=True) and disagreement >= 0
                 and is_number(min_opacity, finite=True) and 0 <= min_opacity < 1
                 and is_whole(depth_resolution) and 1 <= depth_resolution <= 256
-                and is_number(power, finite=True) and 0 < power <= 8):
+                and is_number(power, finite=True) and 0 < power <= 8
+                and lookahead in (0, 1) and not isinstance(lookahead, float)):
             raise UserError(f"hybrid needs disagreement >= 0, min_opacity in [0, 1), a whole number "
-                            f"depth_resolution in [1, 256] and power in (0, 8], got {disagreement!r}, "
-                            f"{min_opacity!r}, {depth_resolution!r}, {power!r}")
+                            f"depth_resolution in [1, 256], power in (0, 8] and lookahead 0 or 1, got "
+                            f"{disagreement!r}, {min_opacity!r}, {depth_resolution!r}, {power!r}, {lookahead!r}")
         self.disagreement, self.min_opacity = float(disagreement), float(min_opacity)
         self.depth_resolution, self.bootstrap = int(depth_resolution), check_bootstrap(bootstrap)
-        self.power = float(power)
+        self.power, self.lookahead = float(power), int(lookahead)
 
     def options(self):
         return {"disagreement": self.disagreement, "min_opacity": self.min_opacity,
-                "depth_resolution": self.depth_resolution, "bootstrap": self.bootstrap, "power": self.power}
+                "depth_resolution": self.depth_resolution, "bootstrap": self.bootstrap, "power": self.power,
+                "lookahead": self.lookahead}
 
     def make_field(self, bbox_min, bbox_max, n_members, config, seed):
         return Ensemble(bbox_min, bbox_max, n_members=n_members, config=config, seed=seed, bootstrap=self.bootstrap)
@@ -170,10 +183,11 @@ class HybridPlanner(Planner):
         best = np.full(len(owner), -1.0)
         for view in self._depth_views(state.ensemble, [state.candidates[j] for j in dict.fromkeys(state.captured)]):
             best = np.maximum(best, seen_cosines(pts, centres, *view))
+        if self.lookahead:
+            return self._lookahead(state, batch, allowed, pts, centres, worth_gain, best, r)
         picks, first = [], None
         for _ in range(batch):
-            worth = (np.arccos(np.clip(best, -1.0, 1.0)) / np.pi) ** self.power * worth_gain
-            scores = np.bincount(owner, weights=worth, minlength=c) / r
+            scores = np.bincount(owner, weights=self._worth(best, worth_gain), minlength=c) / r
             first = scores if first is None else first
             pick = greedy_top(scores, allowed, 1)[0]
             picks.append(pick)
@@ -181,4 +195,30 @@ class HybridPlanner(Planner):
             if len(picks) < batch:
                 view, = self._depth_views(state.ensemble, [state.candidates[pick]])
                 best = np.maximum(best, seen_cosines(pts, centres, *view))
+        return picks, first
+
+    def _worth(self, cos, gain):
+        """(..., P) worth of rays whose points' nearest seeing camera lies at
+        cosine ``cos`` (..., P), with disagreement factors ``gain`` (P,)."""
+        return (np.arccos(np.clip(cos, -1.0, 1.0)) / np.pi) ** self.power * gain
+
+    def _lookahead(self, state, batch, allowed, pts, centres, gain, best, r):
+        """Greedy picks by the worth each candidate takes off all candidates'
+        R rays (see the module's docstring); returns the picks and the first
+        pick's scores, each candidate's mean loss of worth a ray."""
+        c = len(state.candidates)
+        ids = np.flatnonzero(allowed)
+        # (A, P) cosines at every ray's point from each allowed candidate that sees it.
+        seen = np.stack([seen_cosines(pts, centres, *view)
+                         for view in self._depth_views(state.ensemble, [state.candidates[i] for i in ids])])
+        picks, first = [], None
+        for _ in range(batch):
+            scores = np.zeros(c)  # captured or out of reach: nothing to add
+            now = self._worth(best, gain)
+            scores[ids] = (now[None, :] - self._worth(np.maximum(best[None, :], seen), gain)).sum(axis=1) / (c * r)
+            first = scores if first is None else first
+            pick = greedy_top(scores, allowed, 1)[0]
+            picks.append(pick)
+            allowed[pick] = False
+            best = np.maximum(best, seen[np.searchsorted(ids, pick)])
         return picks, first

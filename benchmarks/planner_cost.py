@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 import mitsuba_active  # noqa: F401
+from mitsuba_active.checks import setting_value
 from mitsuba_active.env import SceneSource
 from mitsuba_active.planners import PlanningState, make_planner
 from mitsuba_active.run import RunConfig, make_ensemble, sparse_candidate_rays, train_on
@@ -31,12 +32,13 @@ from mitsuba_active.scenes import BUNDLED_SCENE
 
 
 def planner_spec(text: str):
-    """``NAME`` or ``NAME:OPTION=VALUE,...`` (whole numbers or floats) -> (name, options)."""
+    """``NAME`` or ``NAME:OPTION=VALUE+OPTION=VALUE`` -> (name, options), the
+    values read as ``--planner-option`` reads them."""
     name, _, rest = text.partition(":")
     options = {}
     for item in filter(None, rest.split("+")):
         key, _, value = item.partition("=")
-        options[key] = int(value) if value.lstrip("-").isdigit() else float(value)
+        options[key] = setting_value(value)
     return name, options
 
 
@@ -53,8 +55,8 @@ def main():
     ens = make_ensemble(src, RunConfig(), 2, seed=0)
     captured = [int(i) for i in np.linspace(0, 99, args.views).round()]
     train_on(ens, [src.candidate_view(i) for i in captured[:2]], 200)
-    for i in captured[2:]:
-        train_on(ens, [src.candidate_view(j) for j in captured[:captured.index(i) + 1]], 50)
+    for n in range(3, len(captured) + 1):
+        train_on(ens, [src.candidate_view(j) for j in captured[:n]], 50)
     state = PlanningState(src.candidates, captured, ens, sparse_candidate_rays(src.candidates, 256, 0),
                           np.random.default_rng(0))
     planners = {}

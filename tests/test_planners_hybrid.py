@@ -126,7 +126,7 @@ def test_hybrid_looks_where_no_camera_has_looked_when_no_surface_is_known_yet():
 
 def test_hybrid_and_rfe_options_are_checked():
     for bad in (dict(disagreement=-1), dict(min_opacity=1.0), dict(depth_resolution=0), dict(bootstrap="pixels"),
-                dict(power=0), dict(lookahead=2), dict(lookahead=0.5)):
+                dict(power=0), dict(lookahead=2), dict(lookahead=0.5), dict(lookahead=True)):
         with pytest.raises(UserError, match="hybrid|bootstrap"):
             make_planner("hybrid", **bad)
     for bad in (dict(min_opacity=-0.1), dict(bootstrap="all")):

@@ -127,7 +127,7 @@ class HybridPlanner(Planner):
                 and is_number(min_opacity, finite=True) and 0 <= min_opacity < 1
                 and is_whole(depth_resolution) and 1 <= depth_resolution <= 256
                 and is_number(power, finite=True) and 0 < power <= 8
-                and lookahead in (0, 1) and not isinstance(lookahead, float)):
+                and is_whole(lookahead) and lookahead in (0, 1)):
             raise UserError(f"hybrid needs disagreement >= 0, min_opacity in [0, 1), a whole number "
                             f"depth_resolution in [1, 256], power in (0, 8] and lookahead 0 or 1, got "
                             f"{disagreement!r}, {min_opacity!r}, {depth_resolution!r}, {power!r}, {lookahead!r}")

@@ -419,7 +419,8 @@ def test_a_member_trains_the_same_whatever_the_ensemble_size():
         ens.set_rays(*a)
         ens.train(20)
         params.append(ens.member_params(0))
-    np.testing.assert_allclose(params[0], params[1], rtol=1e-4, atol=1e-6)
+    # atol: the threads' gradient copies are summed in an order that depends on scheduling.
+    np.testing.assert_allclose(params[0], params[1], rtol=1e-4, atol=1e-5)
 
 
 def test_save_load_renders_identically(tmp_path):

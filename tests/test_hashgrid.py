@@ -249,51 +249,19 @@ def test_an_ensemble_looks_up_the_float16_copy_of_its_current_table():
     assert np.abs(np.subtract(half, full)).max() > 0
 
 
-@pytest.mark.parametrize("members", ["per ray", "all"])
-def test_gradients_added_level_group_by_group_match_the_fused_march(monkeypatch, members):
-    """A table too large for one level group gets its gradients after the march,
-    group by group: the same gradients as the march adding them itself."""
-    from mitsuba_active.field import grid
-
-    K, S = 3, 8
-    ens = Ensemble(*BOX, n_members=K, config=dataclasses.replace(HASHED, n_samples=S), seed=3)
-    o, d = camera_rays([0.3, 0.4, 2.5], width=6, height=6)
-    member = np.random.default_rng(1).integers(0, K, len(o)).astype(np.uint32)
-    jitter = mi.Float(np.random.default_rng(2).uniform(size=len(o) * S).astype(np.float32))
-    table = np.array(ens.params().grid)
-
-    def gradient(budget):
-        monkeypatch.setattr(grid, "SCATTER_GROUP_BYTES", budget)
-        params = ens.params()
-        params.grid = mi.Float(table)
-        dr.enable_grad(params.grid)
-        args = (params, mi.Point3f(o.T), mi.Vector3f(d.T))
-        outs = ([render_flat(*args, mi.UInt32(member), jitter=jitter)] if members == "per ray"
-                else render_members(*args, jitter=jitter))
-        loss = sum((k + 1) * (dr.sum(dr.sum(out["rgb"])) + 0.3 * dr.sum(out["distance"])) for k, out in enumerate(outs))
-        dr.backward(loss)
-        return np.array(dr.grad(params.grid))
-
-    layout = GridLayout.from_config(ens.config)
-    monkeypatch.setattr(grid, "SCATTER_GROUP_BYTES", 16)
-    assert grid.level_groups(layout, 16 * K) == [range(0, 1), range(1, 2), range(2, 3)]
-    grouped, fused = gradient(16), gradient(1 << 30)
-    np.testing.assert_allclose(grouped, fused, rtol=1e-5, atol=1e-7)
-    per_level = [np.abs(grouped[4 * K * off:4 * K * (off + size)]).sum() for off, size in zip(layout.offsets, layout.sizes)]
-    assert min(per_level) > 0  # every group's levels got gradients
-
-
 def test_dense_layouts_and_small_tables_keep_one_level_group():
     from mitsuba_active.field.grid import level_groups
 
+    budget = 3 << 19
     dense = GridLayout.from_config(FieldConfig(n_levels=2))
-    assert level_groups(dense, 64 * 16) == [range(0, 2)]
+    assert level_groups(dense, 64 * 16, budget) == [range(0, 2)]
     hashed = GridLayout.from_config(FieldConfig(n_levels=12, base_resolution=16, per_level_scale=1.2,
                                                 log2_table_size=15))
-    groups = level_groups(hashed, 16)
+    groups = level_groups(hashed, 16, budget)
     assert 1 < len(groups) < 12 and [lv for g in groups for lv in g] == list(range(12))
-    assert len(level_groups(hashed, 64)) > len(groups)
-    assert level_groups(GridLayout.from_config(HASHED), 16) == [range(0, 3)]
+    assert len(level_groups(hashed, 64, budget)) > len(groups)
+    assert level_groups(hashed, 64, budget, 6) == [range(2 * g, 2 * g + 2) for g in range(6)]
+    assert level_groups(GridLayout.from_config(HASHED), 16, budget) == [range(0, 3)]
 
 
 def test_half_lookups_level_group_by_level_group_match_the_reference(monkeypatch):

@@ -33,15 +33,10 @@ from .config import FieldConfig
 #: Channels per vertex: density logit + RGB logits.
 N_CHANNELS = 4
 
-#: Most bytes of the float32 table whose gradients one group of
-#: :func:`level_groups` receives at a time: about what a core's L2 cache
-#: (1 MiB on the 2-core machine) keeps of it between a ray's samples
-#: (sizes measured: docs/field-measurements.md).
-SCATTER_GROUP_BYTES = 3 << 19
-#: The same for the lookups' reads of the float16 table (2.5 MiB a member
-#: there), in at most half as many groups as levels: each lane also writes
-#: its group's K*4 partial sums.
-LOOKUP_GROUP_BYTES = 1 << 20
+#: Most bytes of the float16 table that one group of :func:`level_groups`
+#: reads at a time: one member's twelve levels (2.5 MiB) are read at once,
+#: four members' in four groups (measured: docs/field-measurements.md).
+LOOKUP_GROUP_BYTES = 3 << 20
 
 _PRIMES = (1, 2654435761, 805459861)
 
@@ -121,23 +116,21 @@ def reduce_mode():
     return dr.ReduceMode.Auto
 
 
-def level_groups(layout: GridLayout, entry_bytes: int, budget: int = None, most: int = None) -> list:
+def level_groups(layout: GridLayout, entry_bytes: int, budget: int, most: int = None) -> list:
     """The levels in equal groups of consecutive ones (a list of ``range``):
     for a layout with hashed levels, as few groups as keep each one's share
-    of a table of ``entry_bytes`` an entry within ``budget`` (default
-    :data:`SCATTER_GROUP_BYTES`), or ``most`` groups (default: one a
-    level) where that takes more; else one group of all.
+    of a table of ``entry_bytes`` an entry within ``budget`` bytes, or
+    ``most`` groups (default: one a level) where that takes more; else one
+    group of all.
 
-    A pass that reads or adds to the table group after group keeps its
-    random accesses within that share, which the caches hold (see
-    :func:`group_lanes`). Dense levels alone gain nothing from it: they
-    stay in one group.
+    A pass that reads the table group after group keeps its random accesses
+    within that share, which the caches hold (see :func:`group_lanes`).
+    Dense levels alone gain nothing from it: they stay in one group.
     """
     L = len(layout.resolutions)
     if all(layout.dense):
         return [range(L)]
-    budget = SCATTER_GROUP_BYTES if budget is None else int(budget)
-    wanted = min(-(-layout.n_entries * int(entry_bytes) // budget), L if most is None else int(most))
+    wanted = min(-(-layout.n_entries * int(entry_bytes) // int(budget)), L if most is None else int(most))
     n = next(d for d in range(1, L + 1) if L % d == 0 and d >= min(wanted, L))
     return [range(g * L // n, (g + 1) * L // n) for g in range(n)]
 
@@ -300,7 +293,7 @@ def _query_by_groups(grid, layout: GridLayout, K: int, u, active, groups):
     return [mi.Vector4f(*[total[k * N_CHANNELS + ch] for ch in range(N_CHANNELS)]) for k in range(K)]
 
 
-def accumulate(table, layout: GridLayout, n_members: int, u, values, member=None, active=True, levels=None):
+def accumulate(table, layout: GridLayout, n_members: int, u, values, member=None, active=True):
     """Add ``values`` at positions ``u`` to ``table``, spread over the grid
     corners with the trilinear weights: the adjoint of :func:`query` (its
     gradient with respect to the table), in the same layout.
@@ -310,13 +303,12 @@ def accumulate(table, layout: GridLayout, n_members: int, u, values, member=None
         values: ``K*4`` ``mi.Float`` (every member's 4, member after member)
             when ``member`` is None, else 4 (that member's).
         layout, n_members, u, member, active: as for :func:`query`.
-        levels: None (every level), or the levels to add to (a ``range``).
     """
     K = int(n_members)
     mode = reduce_mode()
     XF = type(mi.ArrayXf())
     mem = None if member is None else mi.UInt32(member)
-    for _, idx, w in corners(layout, u, levels):
+    for _, idx, w in corners(layout, u):
         if mem is None:  # one K*4-wide packet per corner, as query gathers it
             dr.scatter_add(table, XF(*[v * w for v in values]), idx, active, mode=mode)
         else:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from .grid import N_CHANNELS, accumulate, group_lanes, level_groups, query
+from .grid import accumulate, query
 
 
 def _raw_to_field(raw, valid, density_bias: float, inv_diag: float):
@@ -281,63 +281,28 @@ class _MarchedGrid(_MarchedComposite):
     """:class:`_MarchedComposite` of features looked up from a grid table,
     differentiated with respect to the table itself.
 
-    Where the table fits the caches (one of :func:`.grid.level_groups`), its
-    backward march adds each sample's gradient straight to the sample's grid
-    corners (the adjoint of :func:`.grid.query`) instead of writing it out
-    for a separate scatter kernel to read back: for K members that saves
+    Its backward march adds each sample's gradient straight to the sample's
+    grid corners (the adjoint of :func:`.grid.query`) instead of writing it
+    out for a separate scatter kernel to read back: for K members that saves
     writing and reading K*4 floats a sample and tracing the corners twice.
-    A larger table (twelve hashed levels, several members) gets them level
-    group by level group after the march: one lane per ray and group walks
-    the ray's stored gradients and adds them to its group's levels alone,
-    and the lanes of a group come one after another, so the random writes
-    of a while stay within the group's share of the table.
     """
 
     def eval(self, grid, raws, lookup, t, delta, valid, S, density_bias, inv_diag, reg=None):
         # lookup: (layout, n_members, u, member, active), the arguments the features were queried with.
         self.grid_width, self.lookup = dr.width(grid), lookup
-        self.groups = level_groups(lookup[0], 4 * N_CHANNELS * lookup[1])
         return super().eval(raws, t, delta, valid, S, density_bias, inv_diag, reg)
 
     def _write_gradients(self, j, grads, valid):
-        if not self.per_ray or len(self.groups) > 1:  # stored, and added to the corners after the march
+        if not self.per_ray:  # stored, and added to the occupied samples' corners after the march
             return super()._write_gradients(j, grads, valid)
         layout, n_members, u, member, _ = self.lookup
         if member is not None and dr.width(member) > 1:
             member = dr.gather(mi.UInt32, member, j)
         accumulate(self.table_grads, layout, n_members, dr.gather(mi.Point3f, u, j), grads, member, valid)
 
-    def _accumulate_by_groups(self):
-        """Add the stored gradients of every ray's samples to their corners,
-        one lane per ray and level group (see the class docstring)."""
-        layout, n_members, u, member, _ = self.lookup
-        ray, group, real, _ = group_lanes(dr.width(self.first), len(self.groups))
-        first = dr.gather(mi.UInt32, self.first, ray)
-        valid = dr.gather(mi.Bool, self.valid, ray) & real
-        per_sample = member is not None and dr.width(member) > 1
-
-        def step(i):
-            j = first + i
-            g = dr.gather(self.XF, self.grads, j, shape=(4 * self.K, dr.width(j)))
-            values, uj = [g[c] for c in range(4 * self.K)], dr.gather(mi.Point3f, u, j)
-            m = dr.gather(mi.UInt32, member, j) if per_sample else member
-            for index, levels in enumerate(self.groups):
-                # A group's lanes are whole SIMD packets: the others skip its corners.
-                def add(uj, values, levels=levels):
-                    accumulate(self.table_grads, layout, n_members, uj, values, m, valid, levels)
-                    return ()
-                dr.if_stmt((uj, values), group == index, add, lambda uj, values: ())
-            return (i + 1,)
-
-        dr.while_loop((mi.UInt32(0),), lambda i: i < self.S, step)
-
     def backward(self):
         self.table_grads = dr.zeros(mi.Float, self.grid_width)
-        if self.per_ray and len(self.groups) > 1:
-            self.grads = dr.empty(mi.Float, 4 * self.K * dr.width(self.t))  # the march writes every sample
-            self._march_gradients()
-            self._accumulate_by_groups()
-        elif self.per_ray:
+        if self.per_ray:
             self._march_gradients()
         else:
             # Inside the march every lane would trace its corners, skipped or not

@@ -1,0 +1,52 @@
+"""benchmarks/view_angles.py: its picks by direction alone, and its refusals."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+
+from benchmarks.view_angles import directions, farthest_picks, k_median_picks, mean_nearest
+from mitsuba_active.planners import PlanningState, make_planner
+from mitsuba_active.rigs import fibonacci_sphere
+from tests.conftest import REPO
+
+
+def unit(v):
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def test_farthest_picks_are_the_coverage_planners():
+    cands = fibonacci_sphere(30, [0, 0, 0], 2.0, 40.0, 8, 8)
+    state = PlanningState(cands, [0, 7])
+    planner = make_planner("coverage")
+    for _ in range(8):
+        state.captured.extend(planner.select(state, 1)[0])
+    assert farthest_picks(directions([c.to_dict() for c in cands]), [0, 7], 10) == state.captured
+
+
+def test_k_median_takes_the_crowd_where_farthest_takes_the_lone_view():
+    rng = np.random.default_rng(0)
+    crowd = unit([0, 0, 1] + 0.15 * rng.normal(size=(8, 3)))
+    cands = np.concatenate([unit([[1, 0, 0]]), crowd, unit([[-1, 0, 0]])])
+    assert farthest_picks(cands, [0], 2)[1] == 9  # the lone view, farthest from +x
+    pick = k_median_picks(cands, [0], 2)[1]
+    assert 1 <= pick <= 8
+    # Its pick lowers the candidates' mean angle to their nearest pick more than the lone one does.
+    assert mean_nearest(cands, cands[[0, pick]]) < mean_nearest(cands, cands[[0, 9]])
+
+
+def test_refuses_folders_without_runs_and_damaged_records(tmp_path):
+    def run(*args):
+        return subprocess.run([sys.executable, str(REPO / "benchmarks" / "view_angles.py"), *map(str, args)],
+                              capture_output=True, text=True, cwd=REPO)
+
+    proc = run(tmp_path)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "no runs under" in proc.stderr
+    record = tmp_path / "runs" / "spot" / "even-seed0" / "run.json"
+    record.parent.mkdir(parents=True)
+    record.write_text(json.dumps({"config": {}}))
+    proc = run(tmp_path)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "is not a run record" in proc.stderr
+    assert "Traceback" not in proc.stderr

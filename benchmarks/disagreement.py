@@ -55,9 +55,13 @@ def measure(src, n_views: int, steps_per_view: int, members: int, seed: int) -> 
         disagreement.append(float(pred["rgb_var"].sum()))
         error.append(float(((pred["rgb_mean"] - truth) ** 2).sum()))
     angle = np.degrees(angles(dirs[others], dirs[captured]).min(axis=1))
-    rho = lambda a, b: float(spearmanr(a, b)[0])  # noqa: E731
-    return {"steps_per_view": steps_per_view, "disagreement_error": rho(disagreement, error),
-            "disagreement_angle": rho(disagreement, angle), "error_angle": rho(error, angle)}
+    return {"steps_per_view": steps_per_view, "disagreement_error": rank_correlation(disagreement, error),
+            "disagreement_angle": rank_correlation(disagreement, angle), "error_angle": rank_correlation(error, angle)}
+
+
+def rank_correlation(a, b) -> float:
+    """Spearman's rank correlation of two sequences of numbers."""
+    return float(spearmanr(a, b)[0])
 
 
 def main():

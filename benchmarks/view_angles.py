@@ -1,17 +1,18 @@
 """How near the held-out views lie to a captured view, per planner.
 
-    python benchmarks/view_angles.py bench/suite-full [bench/other ...] [--views 10 20]
+    python benchmarks/view_angles.py bench/shared-full [bench/other ...] [--views 10 20]
         [--exclude cbox,mic] [--out benchmarks/results/view_angles.json]
 
 Reads every finished run of the suite folders (``runs/SCENE/PLANNER-seedS/run.json``)
 and gives, at each view count, the mean over held-out views of the angle (degrees)
 between a held-out camera's viewing direction and the nearest captured camera's,
-averaged over the scenes and seeds that every planner ran. Beside the planners' own picks it scores two made from viewing
-directions alone, from the same initial views, candidates and held-out views of
-each scene and seed: ``farthest`` (``coverage``'s rule, the direction farthest
-from every captured one) and ``k-median`` (each pick the candidate that most
-lowers the mean angle from every candidate to its nearest captured view). They
-show what a choice by viewing direction alone can reach on this measure.
+averaged over the scenes and seeds that every planner ran. Beside the planners'
+own picks it scores two made from viewing directions alone, from the same initial
+views, candidates and held-out views of each scene and seed: ``farthest``
+(``coverage``'s rule, the direction farthest from every captured one) and
+``k-median`` (each pick the candidate that most lowers the mean angle from every
+candidate to its nearest captured view). They show what a choice by viewing
+direction alone can reach on this measure.
 """
 
 from __future__ import annotations

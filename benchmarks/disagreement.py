@@ -32,20 +32,19 @@ from scipy.stats import spearmanr
 import mitsuba_active  # noqa: F401
 from mitsuba_active.cameras import camera_rays
 from mitsuba_active.env import SceneSource
-from mitsuba_active.run import RunConfig, make_ensemble, train_on
+from mitsuba_active.run import RunConfig, make_ensemble
 from mitsuba_active.scenes import BUNDLED_SCENE
 
-from view_angles import angles, farthest_picks
+from planner_cost import train_as_a_run
+from view_angles import angles, directions, farthest_picks
 
 
 def measure(src, n_views: int, steps_per_view: int, members: int, seed: int) -> dict:
     """Spearman correlations of disagreement, error and angle over the uncaptured candidates."""
-    dirs = np.stack([c.forward for c in src.candidates])
-    captured = farthest_picks(dirs, [0, len(dirs) // 2], n_views)
+    dirs = directions(src.candidates)
+    captured = farthest_picks(src.candidates, [0, len(dirs) // 2], n_views)
     ens = make_ensemble(src, RunConfig(), members, seed=seed)
-    train_on(ens, [src.candidate_view(i) for i in captured[:2]], 200)
-    for n in range(3, n_views + 1):
-        train_on(ens, [src.candidate_view(i) for i in captured[:n]], steps_per_view)
+    train_as_a_run(ens, src, captured, steps_per_view)
     others = [i for i in range(len(dirs)) if i not in captured]
     disagreement, error = [], []
     for i in others:

@@ -42,6 +42,15 @@ def planner_spec(text: str):
     return name, options
 
 
+def train_as_a_run(ens, src, captured: list, steps_per_view: int = RunConfig.steps_per_view):
+    """Train ``ens`` as a run trains its ensemble: ``initial_steps`` on the
+    first two of the ``captured`` candidate views, then ``steps_per_view``
+    after each further view, on all views so far."""
+    train_on(ens, [src.candidate_view(i) for i in captured[:2]], RunConfig.initial_steps)
+    for n in range(3, len(captured) + 1):
+        train_on(ens, [src.candidate_view(j) for j in captured[:n]], steps_per_view)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--planners", default="rfe,hybrid,hybrid:lookahead=1",
@@ -54,9 +63,7 @@ def main():
     src = SceneSource.from_xml(BUNDLED_SCENE, n_candidates=100, n_heldout=4, resolution=64, spp=16)
     ens = make_ensemble(src, RunConfig(), 2, seed=0)
     captured = [int(i) for i in np.linspace(0, 99, args.views).round()]
-    train_on(ens, [src.candidate_view(i) for i in captured[:2]], 200)
-    for n in range(3, len(captured) + 1):
-        train_on(ens, [src.candidate_view(j) for j in captured[:n]], 50)
+    train_as_a_run(ens, src, captured)
     state = PlanningState(src.candidates, captured, ens, sparse_candidate_rays(src.candidates, 256, 0),
                           np.random.default_rng(0))
     planners = {}

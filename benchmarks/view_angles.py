@@ -26,12 +26,13 @@ import numpy as np
 
 from mitsuba_active.cameras import Camera
 from mitsuba_active.errors import UserError
+from mitsuba_active.planners import PlanningState, make_planner
 from mitsuba_active.record import read_record
 
 
 def directions(cameras) -> np.ndarray:
-    """(N, 3) unit viewing directions of camera dicts."""
-    return np.stack([Camera.from_dict(c).forward for c in cameras])
+    """(N, 3) unit viewing directions of cameras."""
+    return np.stack([c.forward for c in cameras])
 
 
 def angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -44,16 +45,10 @@ def mean_nearest(heldout: np.ndarray, taken: np.ndarray) -> float:
     return float(np.degrees(angles(heldout, taken).min(axis=1)).mean())
 
 
-def farthest_picks(cands: np.ndarray, initial: list, n: int) -> list:
-    """Greedy farthest-point picks (``coverage``) after ``initial``, to ``n`` in all."""
-    picks = list(initial)
-    nearest = angles(cands, cands[picks]).min(axis=1)
-    while len(picks) < n:
-        nearest[picks] = -1.0
-        k = int(np.argmax(nearest))
-        picks.append(k)
-        nearest = np.minimum(nearest, angles(cands, cands[k:k + 1])[:, 0])
-    return picks
+def farthest_picks(cameras: list, initial: list, n: int) -> list:
+    """``coverage``'s picks among ``cameras`` after ``initial``, to ``n`` in all."""
+    state = PlanningState(cameras, list(initial))
+    return list(initial) + make_planner("coverage").select(state, n - len(initial))[0]
 
 
 def k_median_picks(cands: np.ndarray, initial: list, n: int) -> list:
@@ -97,13 +92,14 @@ def main(argv=None) -> int:
             planner = f"{folder.name}: {planner}"
         if not rec["finished"] or len(rec["captured"]) < top:
             continue
-        cands, held = directions(rec["candidates"]), directions(rec["heldout"])
+        cameras = [Camera.from_dict(c) for c in rec["candidates"]]
+        cands, held = directions(cameras), directions(Camera.from_dict(c) for c in rec["heldout"])
         captured, key = rec["captured"], (path.parts[-3], seed)
         per_planner.setdefault(planner, {})[key] = [mean_nearest(held, cands[captured[:v]]) for v in args.views]
         if key not in simulated:
             initial = captured[:rec["config"]["initial_views"]]
             simulated[key] = {name: [mean_nearest(held, cands[picks[:v]]) for v in args.views]
-                              for name, picks in (("farthest", farthest_picks(cands, initial, top)),
+                              for name, picks in (("farthest", farthest_picks(cameras, initial, top)),
                                                   ("k-median", k_median_picks(cands, initial, top)))}
     for name in ("farthest", "k-median"):
         per_planner[name] = {key: rows[name] for key, rows in simulated.items()}

@@ -6,9 +6,8 @@ import sys
 
 import numpy as np
 
-from benchmarks.view_angles import directions, farthest_picks, k_median_picks, mean_nearest
-from mitsuba_active.planners import PlanningState, make_planner
-from mitsuba_active.rigs import fibonacci_sphere
+from benchmarks.view_angles import farthest_picks, k_median_picks, mean_nearest
+from mitsuba_active.rigs import _cameras_around
 from tests.conftest import REPO
 
 
@@ -17,20 +16,12 @@ def unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-def test_farthest_picks_are_the_coverage_planners():
-    cands = fibonacci_sphere(30, [0, 0, 0], 2.0, 40.0, 8, 8)
-    state = PlanningState(cands, [0, 7])
-    planner = make_planner("coverage")
-    for _ in range(8):
-        state.captured.extend(planner.select(state, 1)[0])
-    assert farthest_picks(directions([c.to_dict() for c in cands]), [0, 7], 10) == state.captured
-
-
 def test_k_median_takes_the_crowd_where_farthest_takes_the_lone_view():
     rng = np.random.default_rng(0)
     crowd = unit([0, 0, 1] + 0.15 * rng.normal(size=(8, 3)))
     cands = np.concatenate([unit([[1, 0, 0]]), crowd, unit([[-1, 0, 0]])])
-    assert farthest_picks(cands, [0], 2)[1] == 9  # the lone view, farthest from +x
+    cameras = _cameras_around(np.zeros(3), 3.0, cands, (0, 1, 0), 40.0, 8, 8, 1e-3, 1e4)
+    assert farthest_picks(cameras, [0], 2)[1] == 9  # the lone view, farthest from +x
     pick = k_median_picks(cands, [0], 2)[1]
     assert 1 <= pick <= 8
     # Its pick lowers the candidates' mean angle to their nearest pick more than the lone one does.

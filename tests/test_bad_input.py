@@ -279,6 +279,7 @@ def test_old_llvm_named_by_the_user_is_refused(tmp_path):
     ("train_throughput.py", ["--set", "speed=3"], "expected OPTION=VALUE with a FieldConfig option"),
     ("train_throughput.py", ["--set", "occupancy_resolution=32"], "leave occupancy_resolution at 0"),
     ("fit_quality.py", ["--set", "n_levels=two"], "FieldConfig.n_levels must be of type int"),
+    ("disagreement.py", ["--views", "2"], "needs --views >= 3, --members >= 2 and --steps-per-view >= 1"),
 ])
 def test_benchmark_scripts_refuse_bad_field_options(script, args, message):
     from tests.conftest import REPO

@@ -29,6 +29,7 @@ from mitsuba_active.env import SceneSource
 from mitsuba_active.planners import PlanningState, make_planner
 from mitsuba_active.run import RunConfig, make_ensemble, sparse_candidate_rays, train_on
 from mitsuba_active.scenes import BUNDLED_SCENE
+from mitsuba_active.training import acquisition_steps
 
 
 def planner_spec(text: str):
@@ -43,12 +44,15 @@ def planner_spec(text: str):
 
 
 def train_as_a_run(ens, src, captured: list, steps_per_view: int = RunConfig.steps_per_view):
-    """Train ``ens`` as a run trains its ensemble: ``initial_steps`` on the
-    first two of the ``captured`` candidate views, then ``steps_per_view``
-    after each further view, on all views so far."""
-    train_on(ens, [src.candidate_view(i) for i in captured[:2]], RunConfig.initial_steps)
-    for n in range(3, len(captured) + 1):
-        train_on(ens, [src.candidate_view(j) for j in captured[:n]], steps_per_view)
+    """Train ``ens`` as a run with two initial views trains its ensemble
+    (:func:`~mitsuba_active.training.acquisition_steps`) on the ``captured``
+    candidate views, one view a round."""
+    first = RunConfig.initial_views
+    train_on(ens, [src.candidate_view(i) for i in captured[:first]],
+             acquisition_steps(0, first, RunConfig.initial_steps, steps_per_view))
+    for n in range(first + 1, len(captured) + 1):
+        train_on(ens, [src.candidate_view(j) for j in captured[:n]],
+                 acquisition_steps(n - 1, 1, RunConfig.initial_steps, steps_per_view))
 
 
 def main():

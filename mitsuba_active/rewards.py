@@ -45,8 +45,8 @@ from .errors import UserError
 from .field import Ensemble, FieldConfig
 from .field.config import DEFAULT_PRESET, FIELD_PRESETS, MAX_MEMBERS, MAX_STEPS
 from .groundtruth import View
-from .training import (MAX_CANDIDATE_RAYS, PLANNER_INIT_SCALE, has_distances, score_views, sparse_candidate_rays,
-                       train_on)
+from .training import (MAX_CANDIDATE_RAYS, PLANNER_INIT_SCALE, acquisition_steps, has_distances, score_views,
+                       sparse_candidate_rays, train_on)
 
 #: Most held-out surface points that ``coverage`` counts (a fixed sample of them beyond).
 MAX_SURFACE_POINTS = 1 << 16
@@ -208,14 +208,13 @@ class UncertaintyReward(Reward):
         self.ensemble = Ensemble(self.source.bbox_min, self.source.bbox_max, n_members=self.members,
                                  config=self.config, seed=self.seed)
         if views:
-            train_on(self.ensemble, views, self.initial_steps + self.steps_per_view * len(views))
+            train_on(self.ensemble, views, acquisition_steps(0, len(views), self.initial_steps, self.steps_per_view))
 
     def gain(self, views):
         origins, directions = sparse_candidate_rays([views[-1].camera], self.rays_per_candidate, self.seed + 1)
         rays = origins[0], directions[0]
         before = self._variance(rays)
-        first = self.initial_steps if len(views) == 1 else 0  # with no initial views it meets its first data here
-        train_on(self.ensemble, views, first + self.steps_per_view)
+        train_on(self.ensemble, views, acquisition_steps(len(views) - 1, 1, self.initial_steps, self.steps_per_view))
         return before - self._variance(rays)
 
     def _variance(self, rays) -> float:

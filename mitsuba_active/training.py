@@ -86,6 +86,17 @@ def sparse_candidate_rays(candidates, n_rays: int, seed: int | np.random.Generat
     return np.stack(o_all), np.stack(d_all)
 
 
+def acquisition_steps(views_before: int, views_added: int, initial_steps: int, steps_per_view: int) -> int:
+    """Training steps a planner's ensemble takes when ``views_added`` views
+    join ``views_before``: ``steps_per_view`` for each, plus ``initial_steps``
+    when they are its first data (a run's initial views, or its first pick
+    without them)."""
+    if not (is_whole(views_before) and is_whole(views_added) and views_before >= 0 and views_added >= 0):
+        raise ValueError(f"acquisition_steps: view counts must be whole numbers >= 0, got "
+                         f"{views_before!r} and {views_added!r}")
+    return (initial_steps if views_before == 0 and views_added else 0) + steps_per_view * views_added
+
+
 def train_on(ens, views: list[View], steps: int, progress: bool = False, reset_occupancy: bool = True) -> np.ndarray:
     """Set the rays of ``views`` on ``ens`` and train it ``steps`` steps; returns the (steps,) losses.
 

@@ -53,6 +53,26 @@ def test_train_on_without_views(source):
         train_on(ens, [source.candidate_view(0)], -1)
 
 
+def test_acquisition_steps_follow_the_schedule():
+    from mitsuba_active.training import acquisition_steps
+
+    assert acquisition_steps(0, 2, 200, 50) == 300  # the initial views
+    assert acquisition_steps(2, 1, 200, 50) == 50
+    assert acquisition_steps(0, 1, 200, 50) == 250  # a first pick without initial views
+    assert acquisition_steps(0, 0, 200, 50) == 0
+    with pytest.raises(ValueError, match="view counts must be whole numbers >= 0"):
+        acquisition_steps(-1, 1, 200, 50)
+
+
+@pytest.mark.parametrize("initial_views", [2, 0])
+def test_a_runs_ensemble_trains_initial_steps_then_steps_per_view(source, tmp_path, initial_views):
+    cfg = RunConfig(scene=str(source.scene.path), planner="rfe", **{**TINY, "initial_views": initial_views,
+                                                                    "eval_views": [4]})
+    run = Run(source, cfg, tmp_path / "r", progress=False, log=lambda m: None)
+    run.execute()
+    assert run.ensemble._step == cfg.initial_steps + cfg.steps_per_view * cfg.budget
+
+
 def test_a_run_that_diverges_after_its_first_record_says_resuming_would_diverge_again(source, tmp_path,
                                                                                       monkeypatch):
     from mitsuba_active.errors import TrainingDiverged

@@ -42,7 +42,8 @@ from ..protocol import evaluate_views, new_field
 from ..record import ALONG_THE_WAY, CONTINUOUS, RUN_FORMAT, along_the_way_views, json_default
 from ..report import contact_sheet, plot_metrics, plot_views
 from ..rigs import generated_rig
-from ..training import evaluation_note, has_distances, predict_view, scores_line, sparse_candidate_rays, train_on
+from ..training import (acquisition_steps, evaluation_note, has_distances, predict_view, scores_line,
+                        sparse_candidate_rays, train_on)
 from ..travel import Journey, diameter_of, stops_along
 from ..travelplots import plot_travel
 from ..upright import snapped_up
@@ -374,8 +375,8 @@ class Run:
                 train_on(self.ensemble, self.env.views, 0, reset_occupancy=False)
             elif self.env.views:
                 t0 = time.perf_counter()
-                train_on(self.ensemble, self.env.views, cfg.initial_steps + cfg.steps_per_view * len(self.env.views),
-                         self.progress)
+                train_on(self.ensemble, self.env.views,
+                         acquisition_steps(0, len(self.env.views), cfg.initial_steps, cfg.steps_per_view), self.progress)
                 self._add_planning_time(time.perf_counter() - t0)
             state.ensemble = self.ensemble
         self._save_record()
@@ -407,9 +408,9 @@ class Run:
                 continue
             t1 = time.perf_counter()
             if self.ensemble is not None:
-                # With no initial views the ensemble meets its first data here.
-                first = cfg.initial_steps if len(self.env.captured) == len(picks) else 0
-                train_on(self.ensemble, self.env.views, first + cfg.steps_per_view * len(picks))
+                train_on(self.ensemble, self.env.views,
+                         acquisition_steps(len(self.env.captured) - len(picks), len(picks), cfg.initial_steps,
+                                           cfg.steps_per_view))
             self.record["captured"] = list(self.env.captured)
             self.record["rounds"].append({
                 "views": len(self.env.captured), "picks": [int(i) for i in picks],

@@ -4,9 +4,9 @@
         [--out benchmarks/results/disagreement.json]
 
 On the bundled scene (100 candidates at 64x64, as the suite's ``full`` profile),
-the ensemble is trained as a run trains it (200 steps on 2 initial views, then
-``--steps-per-view`` steps after each further view) on ``--views`` views picked
-farthest-point (``coverage``'s rule). For every candidate not captured it renders
+the ensemble is trained as a run trains it (200 steps plus ``--steps-per-view``
+for each of 2 initial views, then ``--steps-per-view`` after each further view) on
+``--views`` views picked farthest-point (``coverage``'s rule). For every candidate not captured it renders
 the whole image and takes
 
 - ``disagreement``: the members' colour variance summed over its pixels (RFE's

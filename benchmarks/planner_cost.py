@@ -3,8 +3,8 @@
     python benchmarks/planner_cost.py [--planners rfe,hybrid,hybrid:lookahead=1] [--views 10]
         [--repeats 7] [--out benchmarks/results/planner_cost.json]
 
-The state is a round of the bundled suite's ``full`` profile on the bundled
-scene: 100 candidates at 64x64, 256 sparse rays each, an ensemble of K=2
+The state is a round on the bundled scene, with the bench's ``full``
+profile's planning settings: 100 candidates at 64x64, 256 sparse rays each, an ensemble of K=2
 trained as a run trains it (200 steps on the first 2 views, 50 a view after)
 on ``--views`` evenly spread views. The planners' calls take turns, so load
 from other processes hits all alike. Prints and writes JSON with each

@@ -1,8 +1,9 @@
 """Travel suite: cost-aware against cost-blind planning under a travel budget, and continuous candidates.
 
 Runs scenes of a bench suite (``benchmarks/suites/shared.toml``) with a drone
-under the bench profile's settings (``--profile full``: 64x64, 100
-candidates, 20 held-out views) in these configurations:
+under the bench profile's settings (``--profile full``: 100 candidates,
+20 held-out views), at ``--resolution`` (64 px, where its figures were
+measured), in these configurations:
 
 * ``rfe``: RFE, cost-blind, under a travel budget of ``--diameters`` scene
   diameters (the scene's bounding-box diagonal, as the travel cost uses);
@@ -64,7 +65,7 @@ METRICS = ("psnr", "psnr_fg")
 
 def config_overrides(name: str, args, travel_budget: float) -> tuple[str, dict]:
     """The planner and the run settings of configuration ``name``."""
-    common = {"embodiment": "drone", "eval_views": sorted({10, args.views})}
+    common = {"embodiment": "drone", "eval_views": sorted({10, args.views}), "resolution": args.resolution}
     if name in TRAVEL_CONFIGS:
         settings = {**common, "budget": args.max_views, "travel_budget": round(travel_budget, 6),
                     "cost_weight": args.cost_weight if name.startswith("rfe-cost") else 0.0}
@@ -129,6 +130,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--suite", default=str(ROOT / "benchmarks/suites/shared.toml"))
     ap.add_argument("--profile", default="full")
+    ap.add_argument("--resolution", type=int, default=64, help="image width and height (pixels)")
     ap.add_argument("--scenes", default="spot,bunny,dragon")
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--configs", default=",".join(CONFIGS))

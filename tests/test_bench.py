@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from mitsuba_active.bench import load_suite, plan_jobs, run_suite, unreported_seeds
+from mitsuba_active.bench import PROFILES, load_suite, plan_jobs, run_suite, unreported_seeds
 from mitsuba_active.cli import main
 from mitsuba_active.errors import UserError
 from mitsuba_active.metrics import distance_error, iqm, psnr, ssim, standard_error
+from mitsuba_active.run import RunConfig, field_config
 
 
 def test_iqm_and_standard_error_by_hand():
@@ -958,11 +959,11 @@ def test_bench_field_sets_every_runs_preset(tiny_suite, tmp_path, monkeypatch):
     res = CliRunner().invoke(main, ["bench", str(tiny_suite), "--field", "fast", "--set", "field_preset=default"])
     assert res.exit_code == 2 and "given twice" in res.output
     # The quick profile trains the fast preset, the full one the default.
-    from mitsuba_active.bench import PROFILES
-    from mitsuba_active.run import RunConfig
-
     assert PROFILES["quick"]["field_preset"] == "fast" and "field_preset" not in PROFILES["full"]
     assert RunConfig().field_preset == "default"
+    # At the full profile's resolution the default preset is the multi-level field, not fast's two grids.
+    full = field_config(RunConfig(resolution=PROFILES["full"]["resolution"]), planner=False)
+    assert full.n_levels > field_config(RunConfig(resolution=64), planner=False).n_levels == 2
 
 
 def test_an_unknown_field_preset_is_one_line_and_writes_nothing(tiny_suite, tmp_path):

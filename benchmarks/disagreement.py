@@ -3,11 +3,11 @@
     python benchmarks/disagreement.py [--views 10] [--steps-per-view 50 200] [--members 2]
         [--out benchmarks/results/disagreement.json]
 
-On the bundled scene (100 candidates at 64x64),
-the ensemble is trained as a run trains it (200 steps plus ``--steps-per-view``
-for each of 2 initial views, then ``--steps-per-view`` after each further view) on
-``--views`` views picked farthest-point (``coverage``'s rule). For every candidate not captured it renders
-the whole image and takes
+On the bundled scene (100 candidates at 64x64), the ensemble is trained as a
+run trains it (200 steps plus ``--steps-per-view`` for each of 2 initial
+views, then ``--steps-per-view`` after each further view) on ``--views``
+views picked farthest-point (``coverage``'s rule). For every candidate not
+captured it renders the whole image and takes
 
 - ``disagreement``: the members' colour variance summed over its pixels (RFE's
   score, on every ray instead of a sparse set);

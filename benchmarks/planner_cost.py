@@ -5,8 +5,9 @@
 
 The state is a round on the bundled scene, with the bench's ``full``
 profile's planning settings: 100 candidates at 64x64, 256 sparse rays
-each, an ensemble of K=2 trained as a run trains it (200 steps on the first 2 views, 50 a view after)
-on ``--views`` evenly spread views. The planners' calls take turns, so load
+each, an ensemble of K=2 trained as a run trains it (200 steps plus 50 for
+each of the first 2 views, then 50 a view) on ``--views`` evenly spread
+views. The planners' calls take turns, so load
 from other processes hits all alike. Prints and writes JSON with each
 planner's median ``select()`` seconds, the median of a round's 50 training
 steps, and each planner's round (training plus ``select()``) as a multiple of

@@ -159,16 +159,17 @@ def _init_worker(parent: int):
         raise SystemExit(1)
 
     def stop_again(info):
-        # A stop that lands in a callback Python runs on its own (a weakref's, during garbage
-        # collection) is printed and dropped there: deliver it again, to the job's own code.
-        if isinstance(info.exc_value, SystemExit) and signal.getsignal(signal.SIGTERM) is signal.SIG_IGN:
+        if signal.getsignal(signal.SIGTERM) is not signal.SIG_IGN:  # not stopping
+            sys.__unraisablehook__(info)
+        elif isinstance(info.exc_value, SystemExit):
+            # A stop that lands in a callback Python runs on its own (a weakref's, during garbage
+            # collection) is printed and dropped there: deliver it again, to the job's own code.
             signal.signal(signal.SIGTERM, stop)
             # From another thread, a moment later: sent from here, the stop would be raised inside this hook.
             later = threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGTERM))
             later.daemon = True
             later.start()
-            return
-        sys.__unraisablehook__(info)
+        # Otherwise the finaliser of an object the stop cut short in its making: nothing to report.
 
     def watch_parent():
         while os.getppid() == parent:

@@ -656,6 +656,34 @@ def test_an_interrupt_inside_a_drjit_loop_is_one_line_and_exits_130(tmp_path):
     assert proc.returncode == 130 and proc.stderr.strip() == "mitsuba-active: interrupted", proc.stderr
 
 
+# An object whose making an interrupt cuts short (as imageio's PNG writer, mid-way
+# through its constructor): its finaliser then fails on the attribute never set.
+_HALF_MADE = ("import os, signal, time\n\n\nclass HalfMade:\n    def __init__(self):\n"
+              "        os.kill(os.getpid(), signal.{signal})\n        time.sleep(5)\n        self.ready = True\n\n"
+              "    def __del__(self):\n        self.ready\n\n\n")
+
+
+def test_an_interrupt_inside_a_constructor_is_one_line_and_exits_130(tmp_path):
+    """The finaliser of an object the interrupt cut short in its making prints no traceback."""
+    (tmp_path / "interrupted_making.py").write_text(
+        _HALF_MADE.format(signal="SIGINT") + "from mitsuba_active.cli.common import one_line_errors\n\n\n"
+        "@one_line_errors(libraries=False)\ndef command():\n    HalfMade()\n\n\ncommand()\n")
+    proc = subprocess.run([sys.executable, "-m", "interrupted_making"], capture_output=True, text=True,
+                          cwd=tmp_path, env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
+    assert proc.returncode == 130 and proc.stderr.strip() == "mitsuba-active: interrupted", proc.stderr
+
+
+def test_a_worker_stopped_inside_a_constructor_prints_nothing(tmp_path):
+    """A suite's worker, stopped (SIGTERM) while a job makes an object, exits
+    without a traceback from that object's finaliser."""
+    (tmp_path / "stopped_worker.py").write_text(
+        _HALF_MADE.format(signal="SIGTERM") + "from mitsuba_active import executors\n\n"
+        "executors._init_worker(os.getppid())\nexecutors._worker_busy = True\nHalfMade()\n")
+    proc = subprocess.run([sys.executable, "-m", "stopped_worker"], capture_output=True, text=True,
+                          cwd=tmp_path, env=dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path)))
+    assert proc.returncode == 1 and proc.stderr == "", proc.stderr
+
+
 @pytest.mark.parametrize("args,needle", [
     (["--planner", "even", "--ensemble", "3"], "trains no ensemble"),
     (["--planner", "fisher", "--ensemble", "3"], "trains 1 field"),

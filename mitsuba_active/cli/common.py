@@ -101,6 +101,8 @@ def exit_interrupted():
     """End the command after Ctrl-C (or SIGTERM): one line on stderr, exit code 130."""
     _close_progress_bars()
     click.echo("mitsuba-active: interrupted", err=True)
+    # What is finalised from here on includes objects the interrupt cut short in their making.
+    sys.unraisablehook = _drop_unraisable
     # An interrupt that landed inside exec() of a source string (dataclasses
     # make their methods so, during a late import) leaves CPython's flag for
     # an unhandled KeyboardInterrupt set, and under `python -m` the process
@@ -108,6 +110,10 @@ def exit_interrupted():
     # string starts by clearing that flag.
     exec("None")
     sys.exit(130)
+
+
+def _drop_unraisable(info) -> None:
+    """Report nothing (see :func:`exit_interrupted`)."""
 
 
 def one_line_errors(fn=None, *, libraries: bool = True):

@@ -673,6 +673,20 @@ def test_an_interrupt_inside_a_constructor_is_one_line_and_exits_130(tmp_path):
     assert proc.returncode == 130 and proc.stderr.strip() == "mitsuba-active: interrupted", proc.stderr
 
 
+def test_an_interrupted_command_leaves_the_process_reporting_as_before():
+    """Called in-process, an interrupted command puts Python's unraisable hook back."""
+    from mitsuba_active.cli.common import one_line_errors
+
+    @one_line_errors(libraries=False)
+    def command():
+        raise KeyboardInterrupt
+
+    before = sys.unraisablehook
+    with pytest.raises(SystemExit) as exit_:
+        command()
+    assert exit_.value.code == 130 and sys.unraisablehook is before
+
+
 def test_a_worker_stopped_inside_a_constructor_prints_nothing(tmp_path):
     """A suite's worker, stopped (SIGTERM) while a job makes an object, exits
     without a traceback from that object's finaliser."""

@@ -8,10 +8,12 @@ exit code 2 (:func:`one_line_errors`).
 from __future__ import annotations
 
 import functools
+import gc
 import os
 import signal
 import sys
 import threading
+import traceback
 import warnings
 from pathlib import Path
 
@@ -101,8 +103,6 @@ def exit_interrupted():
     """End the command after Ctrl-C (or SIGTERM): one line on stderr, exit code 130."""
     _close_progress_bars()
     click.echo("mitsuba-active: interrupted", err=True)
-    # What is finalised from here on includes objects the interrupt cut short in their making.
-    sys.unraisablehook = _drop_unraisable
     # An interrupt that landed inside exec() of a source string (dataclasses
     # make their methods so, during a late import) leaves CPython's flag for
     # an unhandled KeyboardInterrupt set, and under `python -m` the process
@@ -113,7 +113,24 @@ def exit_interrupted():
 
 
 def _drop_unraisable(info) -> None:
-    """Report nothing (see :func:`exit_interrupted`)."""
+    """Report nothing (see :func:`_free_interrupted_frames`)."""
+
+
+def _free_interrupted_frames(exc) -> None:
+    """Free, now, what the frames that ``exc`` (and what caused it) unwound still
+    hold, with failing finalisers unreported: among those objects are any the
+    interrupt cut short in their making (a PNG writer stopped inside its
+    constructor fails in its finaliser), whose errors are no news to the user."""
+    previous, sys.unraisablehook = sys.unraisablehook, _drop_unraisable
+    try:
+        seen = set()
+        while exc is not None and id(exc) not in seen:
+            seen.add(id(exc))
+            traceback.clear_frames(exc.__traceback__)  # frames still running are left as they are
+            exc = exc.__cause__ or exc.__context__
+        gc.collect()
+    finally:
+        sys.unraisablehook = previous
 
 
 def one_line_errors(fn=None, *, libraries: bool = True):
@@ -145,6 +162,7 @@ def one_line_errors(fn=None, *, libraries: bool = True):
         except (KeyboardInterrupt, RuntimeError) as exc:
             if not _caused_by_interrupt(exc):
                 raise
+            _free_interrupted_frames(exc)
             exit_interrupted()
         finally:
             if handled:  # None: a handler not set from Python, which cannot be put back

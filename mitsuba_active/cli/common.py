@@ -86,17 +86,20 @@ def _close_progress_bars() -> None:
         bar.close()
 
 
+def _chain(exc):
+    """``exc``, then what caused it, and so on (each once)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        yield exc
+        exc = exc.__cause__ or exc.__context__
+
+
 def _caused_by_interrupt(exc) -> bool:
     """Whether ``exc`` is, or wraps, a KeyboardInterrupt: Dr.Jit's loops and
     custom operations re-raise what their Python bodies raised (Ctrl-C, or
     SIGTERM through :func:`~.interrupts.sigterm_as_interrupt`) as a RuntimeError caused by it."""
-    seen = set()
-    while exc is not None and id(exc) not in seen:
-        if isinstance(exc, KeyboardInterrupt):
-            return True
-        seen.add(id(exc))
-        exc = exc.__cause__ or exc.__context__
-    return False
+    return any(isinstance(e, KeyboardInterrupt) for e in _chain(exc))
 
 
 def exit_interrupted():
@@ -123,11 +126,8 @@ def _free_interrupted_frames(exc) -> None:
     constructor fails in its finaliser), whose errors are no news to the user."""
     previous, sys.unraisablehook = sys.unraisablehook, _drop_unraisable
     try:
-        seen = set()
-        while exc is not None and id(exc) not in seen:
-            seen.add(id(exc))
-            traceback.clear_frames(exc.__traceback__)  # frames still running are left as they are
-            exc = exc.__cause__ or exc.__context__
+        for e in _chain(exc):
+            traceback.clear_frames(e.__traceback__)  # frames still running are left as they are
         gc.collect()
     finally:
         sys.unraisablehook = previous

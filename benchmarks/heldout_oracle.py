@@ -27,31 +27,8 @@ from mitsuba_active.cameras import Camera
 from mitsuba_active.errors import UserError
 from mitsuba_active.planners import Planner, PlanningState, check_batch, unseen
 from mitsuba_active.record import read_record
-
-
-def forwards(cameras) -> np.ndarray:
-    """(N, 3) unit viewing directions of ``cameras``."""
-    return np.stack([c.forward for c in cameras])
-
-
-def k_median_over(held: np.ndarray, cands: np.ndarray, captured: list, allowed: np.ndarray,
-                  n: int) -> tuple[list, np.ndarray]:
-    """``n`` greedy picks among ``cands`` (C, 3) unit directions where ``allowed``
-    (C,) bool, each the one that most lowers the mean angle (radians) from
-    ``held`` (H, 3) to its nearest of ``captured`` and the picks so far; and the
-    first pick's (C,) scores, minus that mean angle after each candidate."""
-    between = np.arccos(np.clip(held @ cands.T, -1.0, 1.0))  # (H, C)
-    nearest = between[:, captured].min(axis=1) if captured else np.full(len(held), np.pi)
-    allowed, picks, first = allowed.copy(), [], None
-    for _ in range(n):
-        scores = -np.minimum(nearest[:, None], between).mean(axis=0)
-        scores[~allowed] = -np.inf
-        first = scores if first is None else first
-        k = int(np.argmax(scores))
-        picks.append(k)
-        allowed[k] = False
-        nearest = np.minimum(nearest, between[:, k])
-    return picks, first
+# As a script, and as a planner file (see mitsuba_active.planners.base), this folder is on sys.path.
+from view_angles import directions, k_median_over
 
 
 class HeldOutKMedian(Planner):
@@ -71,7 +48,7 @@ class HeldOutKMedian(Planner):
     def select(self, state: PlanningState, batch: int):
         allowed = unseen(state)
         check_batch(allowed, batch)
-        cands = forwards(state.candidates)
+        cands = directions(state.candidates)
         # Scenes on one rig share their directions: any of them serves, if their held-out views agree.
         held = [np.asarray(scene["heldout"]) for scene in self.scenes
                 if np.shape(scene["candidates"]) == cands.shape and np.allclose(scene["candidates"], cands, atol=1e-6)]
@@ -96,8 +73,8 @@ def main(argv=None) -> int:
             return 2
         scenes.setdefault(path.parts[-3], dict(
             name=path.parts[-3],
-            candidates=forwards(Camera.from_dict(c) for c in rec["candidates"]).tolist(),
-            heldout=forwards(Camera.from_dict(c) for c in rec["heldout"]).tolist()))
+            candidates=directions(Camera.from_dict(c) for c in rec["candidates"]).tolist(),
+            heldout=directions(Camera.from_dict(c) for c in rec["heldout"]).tolist()))
     if not scenes:
         print(f"heldout_oracle.py: no runs under {args.folder}", file=sys.stderr)
         return 2

@@ -51,19 +51,32 @@ def farthest_picks(cameras: list, initial: list, n: int) -> list:
     return list(initial) + make_planner("coverage").select(state, n - len(initial))[0]
 
 
+def k_median_over(clients: np.ndarray, cands: np.ndarray, captured: list, allowed: np.ndarray,
+                  n: int) -> tuple[list, np.ndarray]:
+    """``n`` greedy picks among ``cands`` (C, 3) unit directions where ``allowed``
+    (C,) bool, each the one that most lowers the mean angle (radians) from
+    ``clients`` (M, 3) to their nearest of ``captured`` and the picks so far; and
+    the first pick's (C,) scores, minus that mean angle after each candidate."""
+    between = angles(clients, cands)  # (M, C)
+    nearest = between[:, captured].min(axis=1) if captured else np.full(len(clients), np.pi)
+    allowed, picks, first = allowed.copy(), [], None
+    for _ in range(n):
+        scores = -np.minimum(nearest[:, None], between).mean(axis=0)
+        scores[~allowed] = -np.inf
+        first = scores if first is None else first
+        k = int(np.argmax(scores))
+        picks.append(k)
+        allowed[k] = False
+        nearest = np.minimum(nearest, between[:, k])
+    return picks, first
+
+
 def k_median_picks(cands: np.ndarray, initial: list, n: int) -> list:
     """Greedy k-median picks after ``initial``: each lowers the candidates' mean
     angle to their nearest pick the most."""
-    picks = list(initial)
-    between = angles(cands, cands)
-    nearest = between[:, picks].min(axis=1)
-    while len(picks) < n:
-        cost = np.minimum(nearest[:, None], between).mean(axis=0)
-        cost[picks] = np.inf
-        k = int(np.argmin(cost))
-        picks.append(k)
-        nearest = np.minimum(nearest, between[:, k])
-    return picks
+    allowed = np.ones(len(cands), bool)
+    allowed[list(initial)] = False
+    return list(initial) + k_median_over(cands, cands, list(initial), allowed, n - len(initial))[0]
 
 
 def main(argv=None) -> int:

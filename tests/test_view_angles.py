@@ -6,7 +6,7 @@ import sys
 
 import numpy as np
 
-from benchmarks.view_angles import farthest_picks, k_median_picks, mean_nearest
+from benchmarks.view_angles import farthest_picks, k_median_over, k_median_picks, mean_nearest
 from mitsuba_active.rigs import _cameras_around
 from tests.conftest import REPO
 
@@ -26,6 +26,20 @@ def test_k_median_takes_the_crowd_where_farthest_takes_the_lone_view():
     assert 1 <= pick <= 8
     # Its pick lowers the candidates' mean angle to their nearest pick more than the lone one does.
     assert mean_nearest(cands, cands[[0, pick]]) < mean_nearest(cands, cands[[0, 9]])
+
+
+def test_k_median_over_other_clients_skips_what_is_not_allowed():
+    rng = np.random.default_rng(0)
+    cands = unit(rng.normal(size=(40, 3)))
+    clients = unit(cands[[5, 17]] + 0.01)  # beside two of the candidates
+    allowed = np.ones(40, bool)
+    allowed[5] = False  # already captured: the next nearest to it must do
+    picks, scores = k_median_over(clients, cands, [0], allowed, 2)
+    assert 17 in picks and 5 not in picks and len(set(picks)) == 2
+    assert scores[5] == -np.inf and np.argmax(scores) == picks[0]
+    # The first pick lowers the clients' mean angle to their nearest capture at least as much as any other.
+    assert all(mean_nearest(clients, cands[[0, picks[0]]]) <= mean_nearest(clients, cands[[0, k]]) + 1e-9
+               for k in np.flatnonzero(allowed))
 
 
 def test_refuses_folders_without_runs_and_damaged_records(tmp_path):

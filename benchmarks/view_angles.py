@@ -6,7 +6,9 @@
 Reads every finished run of the suite folders (``runs/SCENE/PLANNER-seedS/run.json``)
 and gives, at each view count, the mean over held-out views of the angle (degrees)
 between a held-out camera's viewing direction and the nearest captured camera's,
-averaged over the scenes and seeds that every planner ran. Beside the planners'
+averaged over the scenes and seeds that every planner ran, and the largest gap:
+the largest such angle from any candidate's direction (the radius within which
+the captured directions cover the candidates'; ``coverage`` makes it small). Beside the planners'
 own picks it scores two made from viewing directions alone, from the same initial
 views, candidates and held-out views of each scene and seed: ``farthest``
 (``coverage``'s rule, the direction farthest from every captured one) and
@@ -45,6 +47,11 @@ def mean_nearest(heldout: np.ndarray, taken: np.ndarray) -> float:
     return float(np.degrees(angles(heldout, taken).min(axis=1)).mean())
 
 
+def largest_gap(cands: np.ndarray, taken: np.ndarray) -> float:
+    """Largest angle (degrees) from a candidate direction to its nearest taken one."""
+    return float(np.degrees(angles(cands, taken).min(axis=1)).max())
+
+
 def farthest_picks(cameras: list, initial: list, n: int) -> list:
     """``coverage``'s picks among ``cameras`` after ``initial``, to ``n`` in all."""
     state = PlanningState(cameras, list(initial))
@@ -79,6 +86,17 @@ def k_median_picks(cands: np.ndarray, initial: list, n: int) -> list:
     return list(initial) + k_median_over(cands, cands, list(initial), allowed, n - len(initial))[0]
 
 
+#: The figures of a run's picks, by their JSON key, with their printed titles.
+MEASURES = {"mean_degrees": "mean angle (degrees) from a held-out view to the nearest captured view",
+            "largest_gap_degrees": "largest angle (degrees) from a candidate's direction to the nearest captured view"}
+
+
+def measures(held: np.ndarray, cands: np.ndarray, picks: list, views: list) -> dict:
+    """Each of :data:`MEASURES` of the first ``v`` of ``picks`` (indices into ``cands``), for every ``v`` of ``views``."""
+    return {"mean_degrees": [mean_nearest(held, cands[picks[:v]]) for v in views],
+            "largest_gap_degrees": [largest_gap(cands, cands[picks[:v]]) for v in views]}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("folders", nargs="+", type=Path, help="suite folders (bench --out)")
@@ -108,10 +126,10 @@ def main(argv=None) -> int:
         cameras = [Camera.from_dict(c) for c in rec["candidates"]]
         cands, held = directions(cameras), directions(Camera.from_dict(c) for c in rec["heldout"])
         captured, key = rec["captured"], (path.parts[-3], seed)
-        per_planner.setdefault(planner, {})[key] = [mean_nearest(held, cands[captured[:v]]) for v in args.views]
+        per_planner.setdefault(planner, {})[key] = measures(held, cands, captured, args.views)
         if key not in simulated:
             initial = captured[:rec["config"]["initial_views"]]
-            simulated[key] = {name: [mean_nearest(held, cands[picks[:v]]) for v in args.views]
+            simulated[key] = {name: measures(held, cands, picks, args.views)
                               for name, picks in (("farthest", farthest_picks(cameras, initial, top)),
                                                   ("k-median", k_median_picks(cands, initial, top)))}
     for name in ("farthest", "k-median"):
@@ -122,13 +140,15 @@ def main(argv=None) -> int:
         print(f"view_angles.py: no scene and seed with a finished run of every planner "
               f"of at least {top} views", file=sys.stderr)
         return 2
-    table = {name: dict(runs=len(common), mean_degrees={str(v): float(np.mean([rows[key][i] for key in common]))
-                                                        for i, v in enumerate(args.views)})
+    table = {name: dict(runs=len(common),
+                        **{measure: {str(v): float(np.mean([rows[key][measure][i] for key in common]))
+                                     for i, v in enumerate(args.views)} for measure in MEASURES})
              for name, rows in per_planner.items()}
-    print("mean angle (degrees) from a held-out view to the nearest captured view")
-    print(f"{'picks':<32}{'runs':>6}" + "".join(f"{'@' + str(v):>9}" for v in args.views))
-    for name, row in table.items():
-        print(f"{name:<32}{row['runs']:>6}" + "".join(f"{row['mean_degrees'][str(v)]:>9.2f}" for v in args.views))
+    for measure, title in MEASURES.items():
+        print(title)
+        print(f"{'picks':<32}{'runs':>6}" + "".join(f"{'@' + str(v):>9}" for v in args.views))
+        for name, row in table.items():
+            print(f"{name:<32}{row['runs']:>6}" + "".join(f"{row[measure][str(v)]:>9.2f}" for v in args.views))
     if args.out:
         args.out.write_text(json.dumps(dict(folders=[str(f) for f in args.folders], excluded=sorted(excluded),
                                             views=args.views, picks=table), indent=1) + "\n")

@@ -6,7 +6,7 @@ import sys
 
 import numpy as np
 
-from benchmarks.view_angles import farthest_picks, k_median_over, k_median_picks, mean_nearest
+from benchmarks.view_angles import farthest_picks, k_median_over, k_median_picks, largest_gap, mean_nearest
 from mitsuba_active.rigs import _cameras_around
 from tests.conftest import REPO
 
@@ -40,6 +40,14 @@ def test_k_median_over_other_clients_skips_what_is_not_allowed():
     # The first pick lowers the clients' mean angle to their nearest capture at least as much as any other.
     assert all(mean_nearest(clients, cands[[0, picks[0]]]) <= mean_nearest(clients, cands[[0, k]]) + 1e-9
                for k in np.flatnonzero(allowed))
+
+
+def test_largest_gap_is_the_farthest_candidate_from_every_taken_direction():
+    cands = unit([[1, 0, 0], [0, 1, 0], [-1, 0, 0], [1, 1, 0]])
+    assert np.isclose(largest_gap(cands, cands[[0]]), 180.0)  # -x, opposite the one taken
+    assert np.isclose(largest_gap(cands, cands[[0, 2]]), 90.0)  # +y, between the two
+    assert np.isclose(largest_gap(cands, cands[[0, 1, 2]]), 45.0)  # (1, 1, 0) between +x and +y
+    assert np.isclose(largest_gap(cands, cands), 0.0, atol=1e-4)
 
 
 def test_refuses_folders_without_runs_and_damaged_records(tmp_path):

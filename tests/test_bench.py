@@ -695,6 +695,18 @@ def test_bundled_suite_is_well_formed():
     assert all(s.path.is_dir() if s.kind == "dataset" else s.path.is_file() for s in suite.scenes)
 
 
+def test_outside_suite_holds_what_the_bundled_suite_does_not():
+    from tests.conftest import REPO
+
+    bundled = load_suite(REPO / "benchmarks" / "suites" / "shared.toml")
+    outside = load_suite(REPO / "benchmarks" / "suites" / "outside.toml")
+    assert all(s.kind == "mesh" and s.path.is_file() for s in outside.scenes)
+    seen = {(s.path, s.run_options.get("rig", "sphere")) for s in bundled.scenes}
+    # Each scene is a mesh the suite leaves out, or a suite mesh under another rig.
+    assert not {(s.path, s.run_options.get("rig", "sphere")) for s in outside.scenes} & seen
+    assert {s.path for s in outside.scenes} - {s.path for s in bundled.scenes}
+
+
 def test_interior_distance_suite_differs_only_by_the_distance_loss():
     from mitsuba_active.run import INTERIOR_DISTANCE_WEIGHT
     from tests.conftest import REPO

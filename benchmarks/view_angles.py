@@ -86,15 +86,19 @@ def k_median_picks(cands: np.ndarray, initial: list, n: int) -> list:
     return list(initial) + k_median_over(cands, cands, list(initial), allowed, n - len(initial))[0]
 
 
-#: The figures of a run's picks, by their JSON key, with their printed titles.
-MEASURES = {"mean_degrees": "mean angle (degrees) from a held-out view to the nearest captured view",
-            "largest_gap_degrees": "largest angle (degrees) from a candidate's direction to the nearest captured view"}
+#: The figures of a run's picks, by their JSON key: the printed title, and the figure of
+#: the held-out and candidate directions and those taken.
+MEASURES = {
+    "mean_degrees": ("mean angle (degrees) from a held-out view to the nearest captured view",
+                     lambda held, cands, taken: mean_nearest(held, taken)),
+    "largest_gap_degrees": ("largest angle (degrees) from a candidate's direction to the nearest captured view",
+                            lambda held, cands, taken: largest_gap(cands, taken)),
+}
 
 
 def measures(held: np.ndarray, cands: np.ndarray, picks: list, views: list) -> dict:
     """Each of :data:`MEASURES` of the first ``v`` of ``picks`` (indices into ``cands``), for every ``v`` of ``views``."""
-    return {"mean_degrees": [mean_nearest(held, cands[picks[:v]]) for v in views],
-            "largest_gap_degrees": [largest_gap(cands, cands[picks[:v]]) for v in views]}
+    return {key: [figure(held, cands, cands[picks[:v]]) for v in views] for key, (_, figure) in MEASURES.items()}
 
 
 def main(argv=None) -> int:
@@ -144,7 +148,7 @@ def main(argv=None) -> int:
                         **{measure: {str(v): float(np.mean([rows[key][measure][i] for key in common]))
                                      for i, v in enumerate(args.views)} for measure in MEASURES})
              for name, rows in per_planner.items()}
-    for measure, title in MEASURES.items():
+    for measure, (title, _) in MEASURES.items():
         print(title)
         print(f"{'picks':<32}{'runs':>6}" + "".join(f"{'@' + str(v):>9}" for v in args.views))
         for name, row in table.items():

@@ -60,6 +60,8 @@ class PlanningState:
             stream on, as a run's rounds do).
         out_of_reach: indices of candidates the camera cannot get to (a
             drone's or a base's), which :func:`unseen` leaves out.
+        budget: views the run will have captured in all, where the candidates
+            are its fixed pool (None: unknown, or candidates that change).
     """
 
     candidates: list
@@ -68,6 +70,7 @@ class PlanningState:
     candidate_rays: tuple | None = None
     rng: np.random.Generator = field(default_factory=lambda: planner_rng(0))
     out_of_reach: set = field(default_factory=set)
+    budget: int | None = None
 
 
 def _are_candidate_rays(rays, n_candidates: int) -> bool:

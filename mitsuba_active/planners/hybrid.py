@@ -24,6 +24,11 @@ angle than any captured camera), summed. The candidates stand in for the
 views a capture is judged from, so the pick that leaves the least unseen
 over all of them wins (greedy facility location; ``coverage`` instead
 fills the single largest gap).
+
+With ``cover`` and a run's budget, the picks are only views of a covering of
+the candidates' directions planned for the whole budget
+(:mod:`.covering`): the score decides the order in which they are
+captured, and the largest gap at the budget stays as narrow as the plan's.
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ from ..checks import is_number, is_whole
 from ..errors import UserError
 from ..field import Ensemble
 from .base import Planner, PlanningState, check_batch, greedy_top, register, unseen
+from .covering import planned_mask
 from .rfe import check_bootstrap
 
 #: Share (of its own distance) by which a point may lie beyond the ensemble's
@@ -115,6 +121,11 @@ class HybridPlanner(Planner):
         power: exponent of a ray's unseen angle (as a share of pi).
         lookahead: 1 scores what a candidate adds to every candidate's rays;
             0 only to its own.
+        cover: 1 picks only among the views of a covering of the candidates'
+            directions planned for the run's budget
+            (:func:`~mitsuba_active.planners.covering.planned_cover`), so that
+            its largest gap at the budget is no wider than ``coverage``'s
+            picks leave; 0 (or a budget the planner is not told) among all.
     """
 
     name = "hybrid"
@@ -122,23 +133,24 @@ class HybridPlanner(Planner):
     min_members = 2
 
     def __init__(self, disagreement: float = 1.0, min_opacity: float = 0.5, depth_resolution: int = 16,
-                 bootstrap: str = "none", power: float = 1.0, lookahead: int = 0):
+                 bootstrap: str = "none", power: float = 1.0, lookahead: int = 0, cover: int = 0):
         if not (is_number(disagreement, finite=True) and disagreement >= 0
                 and is_number(min_opacity, finite=True) and 0 <= min_opacity < 1
                 and is_whole(depth_resolution) and 1 <= depth_resolution <= 256
                 and is_number(power, finite=True) and 0 < power <= 8
-                and is_whole(lookahead) and lookahead in (0, 1)):
+                and is_whole(lookahead) and lookahead in (0, 1) and is_whole(cover) and cover in (0, 1)):
             raise UserError(f"hybrid needs disagreement >= 0, min_opacity in [0, 1), a whole number "
-                            f"depth_resolution in [1, 256], power in (0, 8] and lookahead 0 or 1, got "
-                            f"{disagreement!r}, {min_opacity!r}, {depth_resolution!r}, {power!r}, {lookahead!r}")
+                            f"depth_resolution in [1, 256], power in (0, 8], lookahead 0 or 1 and cover 0 or 1, "
+                            f"got {disagreement!r}, {min_opacity!r}, {depth_resolution!r}, {power!r}, {lookahead!r}, "
+                            f"{cover!r}")
         self.disagreement, self.min_opacity = float(disagreement), float(min_opacity)
         self.depth_resolution, self.bootstrap = int(depth_resolution), check_bootstrap(bootstrap)
-        self.power, self.lookahead = float(power), int(lookahead)
+        self.power, self.lookahead, self.cover = float(power), int(lookahead), int(cover)
 
     def options(self):
         return {"disagreement": self.disagreement, "min_opacity": self.min_opacity,
                 "depth_resolution": self.depth_resolution, "bootstrap": self.bootstrap, "power": self.power,
-                "lookahead": self.lookahead}
+                "lookahead": self.lookahead, "cover": self.cover}
 
     def make_field(self, bbox_min, bbox_max, n_members, config, seed):
         return Ensemble(bbox_min, bbox_max, n_members=n_members, config=config, seed=seed, bootstrap=self.bootstrap)
@@ -189,13 +201,18 @@ class HybridPlanner(Planner):
         for _ in range(batch):
             scores = np.bincount(owner, weights=self._worth(best, worth_gain), minlength=c) / r
             first = scores if first is None else first
-            pick = greedy_top(scores, allowed, 1)[0]
+            pick = greedy_top(scores, self._within_cover(state, picks, allowed), 1)[0]
             picks.append(pick)
             allowed[pick] = False
             if len(picks) < batch:
                 view, = self._depth_views(state.ensemble, [state.candidates[pick]])
                 best = np.maximum(best, seen_cosines(pts, centres, *view))
         return picks, first
+
+    def _within_cover(self, state: PlanningState, picks: list, allowed: np.ndarray) -> np.ndarray:
+        """``allowed`` (C,) bool, narrowed with ``cover`` to the views planned for the budget beside ``picks``."""
+        planned = planned_mask(state, picks) if self.cover else None
+        return allowed if planned is None else allowed & planned
 
     def _worth(self, cos, gain):
         """(..., P) worth of rays whose points' nearest seeing camera lies at
@@ -217,7 +234,7 @@ class HybridPlanner(Planner):
             now = self._worth(best, gain)
             scores[ids] = (now[None, :] - self._worth(np.maximum(best[None, :], seen), gain)).sum(axis=1) / (c * r)
             first = scores if first is None else first
-            pick = greedy_top(scores, allowed, 1)[0]
+            pick = greedy_top(scores, self._within_cover(state, picks, allowed), 1)[0]
             picks.append(pick)
             allowed[pick] = False
             best = np.maximum(best, seen[np.searchsorted(ids, pick)])

@@ -360,7 +360,8 @@ class Run:
             for n, v in enumerate(self.env.views):
                 self._save_view(n, v)
 
-        state = PlanningState(self.source.candidates, self.env.captured, None, None, self.rng)
+        state = PlanningState(self.source.candidates, self.env.captured, None, None, self.rng,
+                              budget=cfg.budget if self.sampler is None else None)
         if cfg.embodiment != "teleport" and self.sampler is None:  # a pool pose too near the geometry is no pick
             state.out_of_reach = set(np.flatnonzero(~self.journey.embodiment.reachable(self.journey.positions)))
         if self.planner.needs_ensemble:

@@ -56,7 +56,8 @@ def planned_cover(between: np.ndarray, fixed: list, n: int, allowed: np.ndarray)
             largest = np.where(free, nearest.max(axis=0), np.inf)
             mean = nearest.mean(axis=0)
             c = int(np.lexsort((mean, largest))[0])
-            if largest[c] < best[0] - 1e-9 or (largest[c] <= best[0] and mean[c] < best[1] - 1e-9):
+            # A largest gap within 1e-9 of the best counts as the same (rounding differs by column order).
+            if largest[c] < best[0] - 1e-9 or (abs(largest[c] - best[0]) <= 1e-9 and mean[c] < best[1] - 1e-9):
                 free[planned[slot]], free[c] = True, False
                 planned[slot], best, lowered = c, (largest[c], mean[c]), True
     return planned

@@ -123,9 +123,9 @@ class HybridPlanner(Planner):
             0 only to its own.
         cover: 1 picks only among the views of a covering of the candidates'
             directions planned for the run's budget
-            (:func:`~mitsuba_active.planners.covering.planned_cover`), so that
-            its largest gap at the budget is no wider than ``coverage``'s
-            picks leave; 0 (or a budget the planner is not told) among all.
+            (:func:`~mitsuba_active.planners.covering.planned_cover`): the
+            score orders the planned views; 0 (or a budget the planner is
+            not told) picks among all.
     """
 
     name = "hybrid"

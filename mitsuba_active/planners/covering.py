@@ -66,7 +66,7 @@ def planned_cover(between: np.ndarray, fixed: list, n: int, allowed: np.ndarray)
 def planned_mask(state, picks: list) -> np.ndarray | None:
     """(C,) bool: the views of a covering planned for ``state.budget`` that are
     neither captured nor among ``picks``, within reach; None where the budget is
-    unknown or already spent (the state's views are not the run's pool)."""
+    unknown (``state.budget`` None) or spent."""
     taken = list(dict.fromkeys([*state.captured, *picks]))
     budget = state.budget
     if budget is None or budget <= len(taken):

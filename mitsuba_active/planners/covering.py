@@ -67,15 +67,14 @@ def planned_mask(state, picks: list) -> np.ndarray | None:
     """(C,) bool: the views of a covering planned for ``state.budget`` that are
     neither captured nor among ``picks``, within reach; None where the budget is
     unknown (``state.budget`` None) or spent."""
-    taken = list(dict.fromkeys([*state.captured, *picks]))
-    budget = state.budget
-    if budget is None or budget <= len(taken):
+    if state.budget is None:
         return None
+    taken = list(dict.fromkeys([*state.captured, *picks]))
     allowed = np.ones(len(state.candidates), dtype=bool)
     allowed[taken] = False
     allowed[list(state.out_of_reach)] = False
-    n = min(int(budget), len(taken) + int(np.count_nonzero(allowed)))
-    if n <= len(taken):
+    n = min(int(state.budget), len(taken) + int(np.count_nonzero(allowed)))
+    if n <= len(taken):  # the budget is spent, or nothing is left to plan
         return None
     mask = np.zeros(len(state.candidates), dtype=bool)
     mask[planned_cover(direction_angles(state.candidates), taken, n, allowed)[len(taken):]] = True

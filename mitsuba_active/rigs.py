@@ -140,6 +140,10 @@ def rings(n, center, radius, fov=40.0, width=64, height=64, offset=0.0, up=(0, 1
 
 #: Size of the ellipsoid of :func:`interior` cameras: a fraction of the room's half extents.
 INTERIOR_SPREAD = 0.4
+#: Least distance from a generated interior camera to any surface, as a fraction of the
+#: room's bounding-box diagonal: a room's fields see nothing closer to their cameras
+#: (``mitsuba_active.field.room.ROOM_NEAR``).
+INTERIOR_CLEARANCE = 0.055
 
 
 def interior(n, bbox_min, bbox_max, fov=70.0, width=64, height=64, offset=0.0, spread=INTERIOR_SPREAD,
@@ -153,6 +157,22 @@ def interior(n, bbox_min, bbox_max, fov=70.0, width=64, height=64, offset=0.0, s
     _check_count(n)
     center, axes = _room_ellipsoid(bbox_min, bbox_max, spread)
     return _cameras_inside(center, axes, fibonacci_directions(n, offset), up, fov, width, height, near, far)
+
+
+def room_for_camera(scene, points) -> np.ndarray:
+    """(N,) bool: whether a camera inside ``scene`` may stand at each point (N, 3): not inside
+    furniture (it would see nothing else) and, in a room (``scene.interior``), at least
+    :data:`INTERIOR_CLEARANCE` of its diagonal from every surface (nearer, a room's fields see
+    nothing). Inside an object's box (``--rig interior`` asked for) every place is near it."""
+    free = scene.free_space(points)
+    if scene.interior:
+        free &= scene.clearance(points) >= interior_clearance(scene)
+    return free
+
+
+def interior_clearance(scene) -> float:
+    """The least distance (scene units) from a camera inside ``scene`` to its surfaces."""
+    return INTERIOR_CLEARANCE * float(np.linalg.norm(scene.bbox_max - scene.bbox_min))
 
 
 def _room_ellipsoid(bbox_min, bbox_max, spread=INTERIOR_SPREAD):
@@ -259,14 +279,14 @@ def scene_rigs(scene, rig="auto", n_candidates=100, n_heldout=20, width=64, heig
         near, far = clip_range(scene.radius, 2.0 * scene.radius)
         (centre, axes), frame, band = _room_ellipsoid(scene.bbox_min, scene.bbox_max), np.eye(3), (-1.0, 1.0)
         at = lambda dirs: _cameras_inside(centre, axes, dirs, scene.up, fov, width, height, near, far)  # noqa: E731
-        # Cameras inside furniture would see nothing else.
-        free = lambda dirs: scene.free_space(centre + axes * dirs)  # noqa: E731
+        free = lambda dirs: room_for_camera(scene, centre + axes * dirs)  # noqa: E731
 
         def short(found, n, what):
             hint = ("ask for fewer views" if scene.interior else
                     f"{scene.path} is an object, not a room: use --rig sphere or hemisphere")
+            near = f" or closer than {interior_clearance(scene):.3g} to a surface" if scene.interior else ""
             return UserError(f"the interior rig found room for {found} of the {n} {what} cameras inside "
-                             f"{scene.path}, the rest being inside solid objects; {hint}")
+                             f"{scene.path}, the rest being inside solid objects{near}; {hint}")
 
         def make(n, off):  # over-generated, then thinned out evenly over the whole spiral
             dirs = fibonacci_directions(4 * n, off)

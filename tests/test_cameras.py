@@ -1,10 +1,14 @@
+import mitsuba as mi
 import numpy as np
 import pytest
 
 from mitsuba_active.cameras import MITSUBA_TO_OPENGL, Camera, camera_rays, look_at
 from mitsuba_active.errors import UserError
-from mitsuba_active.rigs import check_disjoint, fibonacci_sphere, hemisphere, interior, rings, scene_rigs
-from mitsuba_active.scene import load_scene
+from mitsuba_active.field import FieldConfig
+from mitsuba_active.field.room import ROOM_OPTIONS
+from mitsuba_active.rigs import (INTERIOR_CLEARANCE, INTERIOR_SPREAD, _room_ellipsoid, check_disjoint, fibonacci_directions,
+                                 fibonacci_sphere, hemisphere, interior, rings, scene_rigs)
+from mitsuba_active.scene import load_scene, scene_from_mitsuba
 
 
 @pytest.mark.parametrize("rig", [fibonacci_sphere, hemisphere, rings])
@@ -66,8 +70,13 @@ def test_heldout_views_lie_between_candidates(spot_xml, shared_data, rig):
     assert abs(np.median(height[1]) - np.median(height[0])) < 12
     if rig == "hemisphere":  # above the floor, as the candidates are, and not along its rim
         assert (height[1] > 4.9).all() and (height[1] < 8).sum() <= 4
-    if rig == "interior":  # the candidates cover the whole ellipsoid, its bottom too
-        assert height[0].min() < -60 and height[0].max() > 60
+    if rig == "interior":  # the candidates cover every height of the ellipsoid that has room for a camera
+        places = fibonacci_directions(400)
+        ok = places[scene.free_space(centre + (scene.bbox_max - centre) * INTERIOR_SPREAD * places)]
+        ok = ok[scene.clearance(centre + (scene.bbox_max - centre) * INTERIOR_SPREAD * ok)
+                >= INTERIOR_CLEARANCE * np.linalg.norm(scene.bbox_max - scene.bbox_min)]
+        room = np.degrees(np.arcsin(np.clip(ok / np.linalg.norm(ok, axis=1, keepdims=True) @ up, -1, 1)))
+        assert height[0].min() < room.min() + 5 and height[0].max() > room.max() - 5
 
 
 def test_heldout_views_stay_distinct_and_off_the_rim_with_few_candidates(spot_xml, shared_data):
@@ -80,6 +89,29 @@ def test_heldout_views_stay_distinct_and_off_the_rim_with_few_candidates(spot_xm
     _, held = scene_rigs(scene, "hemisphere", 1, 20, 8)
     height = np.degrees(np.arcsin(np.clip(-np.stack([cam.forward for cam in held]) @ scene.up, -1, 1)))
     assert (height < 8).sum() <= 3
+
+
+def test_clearance_is_the_distance_to_the_nearest_surface():
+    ball = scene_from_mitsuba(mi.load_dict({"type": "scene", "ball": {"type": "sphere", "radius": 2.0},
+                                              "light": {"type": "constant"}}))
+    got = ball.clearance(np.array([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 5.0]]))
+    assert got == pytest.approx([2.0, 0.5, 1.0, 3.0], rel=0.01)
+
+
+def test_interior_cameras_keep_the_room_fields_clearance(shared_data):
+    """No generated interior camera stands closer to a surface than a room's field starts its samples."""
+    room = load_scene(shared_data / "mitsuba/cbox/cbox.xml")
+    diag = np.linalg.norm(room.bbox_max - room.bbox_min)
+    cands, held = scene_rigs(room, "interior", 100, 20, 8)
+    for cams in (cands, held):
+        assert room.clearance(np.stack([c.position for c in cams])).min() >= INTERIOR_CLEARANCE * diag
+    # The room field's near, on its padded box, is the same distance.
+    padded = diag * (1 + 2 * FieldConfig.bbox_padding)
+    assert ROOM_OPTIONS["near"] * padded == pytest.approx(INTERIOR_CLEARANCE * diag, rel=1e-4)
+    # Without the clearance some of these places would stand closer: the test can tell.
+    center, axes = _room_ellipsoid(room.bbox_min, room.bbox_max)
+    places = center + axes * fibonacci_directions(400)
+    assert (room.clearance(places[room.free_space(places)]) < INTERIOR_CLEARANCE * diag).any()
 
 
 def test_xml_rig_uses_the_scenes_own_sensor(shared_data):

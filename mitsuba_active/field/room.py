@@ -19,6 +19,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..rigs import INTERIOR_CLEARANCE
+from .config import FieldConfig
+
+#: Where a room's fields trained on colour alone start their samples
+#: (``FieldConfig.near``, a fraction of the padded box's diagonal): at the
+#: interior rig's clearance, so that no generated camera sees a surface closer
+#: (rounded, as run records print it).
+ROOM_NEAR = round(INTERIOR_CLEARANCE / (1.0 + 2.0 * FieldConfig.bbox_padding), 6)
 #: Field options of rooms seen from inside: the evaluation field's and the
 #: planner's ensemble's trained on colour alone, and both fields' with the
 #: distance loss, the planner's without the smoothness (:func:`room_options`;
@@ -27,8 +35,8 @@ import numpy as np
 #: images that resolve less than 64 cells keep the levels up to what they
 #: resolve (:func:`room_options`).
 ROOM_OPTIONS = {"n_levels": 3, "per_level_scale": 2.0, "log2_table_size": 19, "smoothness_weight": 0.01,
-                "near": 0.05, "view_degree": 0, "distortion_weight": 0.0}
-ROOM_PLANNER_OPTIONS = {"n_levels": 2, "near": 0.05, "view_degree": 0, "distortion_weight": 0.0}
+                "near": ROOM_NEAR, "view_degree": 0, "distortion_weight": 0.0}
+ROOM_PLANNER_OPTIONS = {"n_levels": 2, "near": ROOM_NEAR, "view_degree": 0, "distortion_weight": 0.0}
 ROOM_DISTANCE_OPTIONS = {"view_degree": 0, "smoothness_weight": 0.01}
 
 

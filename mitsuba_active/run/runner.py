@@ -19,6 +19,7 @@ import math
 import time
 import warnings
 from dataclasses import asdict
+from functools import partial
 from pathlib import Path
 
 import drjit as dr
@@ -41,7 +42,7 @@ from ..planners.base import planner_digest, planner_label, planner_rng, unseen
 from ..protocol import evaluate_views, new_field
 from ..record import ALONG_THE_WAY, CONTINUOUS, RUN_FORMAT, along_the_way_views, json_default
 from ..report import contact_sheet, plot_metrics, plot_views
-from ..rigs import generated_rig
+from ..rigs import generated_rig, room_for_camera
 from ..training import (acquisition_steps, evaluation_note, has_distances, predict_view, scores_line,
                         sparse_candidate_rays, train_on)
 from ..travel import Journey, diameter_of, stops_along
@@ -144,9 +145,10 @@ class Run:
         self.sampler = None
         if cfg.candidates_mode == "continuous":
             # A room's cameras see most from its walls: nearer its centre they see less of it.
-            nearest = 1.0 if generated_rig(source.scene, cfg.rig) == "interior" else cfg.nearest
+            room = generated_rig(source.scene, cfg.rig) == "interior"
+            free = partial(room_for_camera, source.scene) if room else source.scene.free_space
             self.sampler = PoseSampler(RigSurface(source.candidates, source.scene.up), self.journey.embodiment,
-                                       source.heldout, source.scene.free_space, nearest)
+                                       source.heldout, free, 1.0 if room else cfg.nearest)
         self.rng = planner_rng(cfg.seed)
         self.record = None
         self.ensemble = None

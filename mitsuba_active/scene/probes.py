@@ -46,6 +46,16 @@ class Enclosure:
     reason: str
 
 
+def hit_distances(mi_scene, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """(N,) float64: how far each ray (origins and unit directions (N, 3),
+    scene units) travels to its first surface; inf where it meets none."""
+    o, d = (np.asarray(a, dtype=np.float32) for a in (origins, directions))
+    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, j]) for j in range(3)]),
+                   mi.Vector3f(*[mi.Float(d[:, j]) for j in range(3)]))
+    si = mi_scene.ray_intersect(ray)
+    return np.where(np.array(si.is_valid()), np.array(si.t, dtype=np.float64), np.inf)
+
+
 def first_hits(mi_scene, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(N,) bool arrays ``hit`` and ``front``: whether each ray (origins and
     directions (N, 3), scene units) meets a surface, and whether the first

@@ -1,14 +1,15 @@
 """Planning cost per round: each planner's ``select()`` on one state, in turns.
 
     python benchmarks/planner_cost.py [--planners rfe,hybrid,hybrid:lookahead=1] [--views 10]
-        [--repeats 7] [--out benchmarks/results/planner_cost.json]
+        [--budget 20] [--repeats 7] [--out benchmarks/results/planner_cost.json]
 
 The state is a round on the bundled scene, with the bench's ``full``
 profile's planning settings: 100 candidates at 64x64, 256 sparse rays
 each, an ensemble of K=2 trained as a run trains it (200 steps plus 50 for
 each of the first 2 views, then 50 a view) on ``--views`` evenly spread
-views. The planners' calls take turns, so load
-from other processes hits all alike. Prints and writes JSON with each
+views; the planners are told the run's ``--budget`` (the profile's 20), as
+a run tells them. The planners' calls take turns, so load from other
+processes hits all alike. Prints and writes JSON with each
 planner's median ``select()`` seconds, the median of a round's 50 training
 steps, and each planner's round (training plus ``select()``) as a multiple of
 the first planner's.
@@ -61,6 +62,7 @@ def main():
     ap.add_argument("--planners", default="rfe,hybrid,hybrid:lookahead=1",
                     help="comma-separated; options after a colon, joined by '+'")
     ap.add_argument("--views", type=int, default=10, help="views the ensemble has been trained on")
+    ap.add_argument("--budget", type=int, default=20, help="the run's budget that planners are told")
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--out", default="benchmarks/results/planner_cost.json")
     args = ap.parse_args()
@@ -70,7 +72,7 @@ def main():
     captured = [int(i) for i in np.linspace(0, 99, args.views).round()]
     train_as_a_run(ens, src, captured)
     state = PlanningState(src.candidates, captured, ens, sparse_candidate_rays(src.candidates, 256, 0),
-                          np.random.default_rng(0))
+                          np.random.default_rng(0), budget=args.budget)
     planners = {}
     for text in args.planners.split(","):
         name, options = planner_spec(text)
@@ -90,7 +92,8 @@ def main():
     train_s = statistics.median(training)
     first = next(iter(planners))
     result = {"scene": "bundled", "candidates": 100, "rays_per_candidate": 256, "ensemble": 2,
-              "views": args.views, "repeats": args.repeats, "training_50_steps_seconds": train_s,
+              "views": args.views, "budget": args.budget, "repeats": args.repeats,
+              "training_50_steps_seconds": train_s,
               "planners": {}}
     base = statistics.median(times[first])
     for text, ts in times.items():

@@ -121,8 +121,8 @@ class HybridPlanner(Planner):
         power: exponent of a ray's unseen angle (as a share of pi).
         lookahead: 1 scores what a candidate adds to every candidate's rays;
             0 only to its own.
-        cover: 1 picks only among the views of a covering of the candidates'
-            directions planned for the run's budget
+        cover: 1 (the default) picks only among the views of a covering of
+            the candidates' directions planned for the run's budget
             (:func:`~mitsuba_active.planners.covering.planned_cover`): the
             score orders the planned views; 0 (or a budget the planner is
             not told) picks among all.
@@ -133,7 +133,7 @@ class HybridPlanner(Planner):
     min_members = 2
 
     def __init__(self, disagreement: float = 1.0, min_opacity: float = 0.5, depth_resolution: int = 16,
-                 bootstrap: str = "none", power: float = 1.0, lookahead: int = 0, cover: int = 0):
+                 bootstrap: str = "none", power: float = 1.0, lookahead: int = 0, cover: int = 1):
         if not (is_number(disagreement, finite=True) and disagreement >= 0
                 and is_number(min_opacity, finite=True) and 0 <= min_opacity < 1
                 and is_whole(depth_resolution) and 1 <= depth_resolution <= 256

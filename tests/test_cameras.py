@@ -6,8 +6,8 @@ from mitsuba_active.cameras import MITSUBA_TO_OPENGL, Camera, camera_rays, look_
 from mitsuba_active.errors import UserError
 from mitsuba_active.field import FieldConfig
 from mitsuba_active.field.room import ROOM_OPTIONS
-from mitsuba_active.rigs import (INTERIOR_CLEARANCE, INTERIOR_SPREAD, _room_ellipsoid, check_disjoint, fibonacci_directions,
-                                 fibonacci_sphere, hemisphere, interior, rings, scene_rigs)
+from mitsuba_active.rigs import (INTERIOR_CLEARANCE, _room_ellipsoid, check_disjoint, fibonacci_directions,
+                                 fibonacci_sphere, hemisphere, interior, rings, room_for_camera, scene_rigs)
 from mitsuba_active.scene import load_scene, scene_from_mitsuba
 
 
@@ -72,10 +72,8 @@ def test_heldout_views_lie_between_candidates(spot_xml, shared_data, rig):
         assert (height[1] > 4.9).all() and (height[1] < 8).sum() <= 4
     if rig == "interior":  # the candidates cover every height of the ellipsoid that has room for a camera
         places = fibonacci_directions(400)
-        ok = places[scene.free_space(centre + (scene.bbox_max - centre) * INTERIOR_SPREAD * places)]
-        ok = ok[scene.clearance(centre + (scene.bbox_max - centre) * INTERIOR_SPREAD * ok)
-                >= INTERIOR_CLEARANCE * np.linalg.norm(scene.bbox_max - scene.bbox_min)]
-        room = np.degrees(np.arcsin(np.clip(ok / np.linalg.norm(ok, axis=1, keepdims=True) @ up, -1, 1)))
+        ok = places[room_for_camera(scene, centre + _room_ellipsoid(scene.bbox_min, scene.bbox_max)[1] * places)]
+        room = np.degrees(np.arcsin(np.clip(ok @ up, -1, 1)))
         assert height[0].min() < room.min() + 5 and height[0].max() > room.max() - 5
 
 

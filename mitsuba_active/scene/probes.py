@@ -46,13 +46,18 @@ class Enclosure:
     reason: str
 
 
-def hit_distances(mi_scene, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
-    """(N,) float64: how far each ray (origins and unit directions (N, 3),
-    scene units) travels to its first surface; inf where it meets none."""
+def _intersect(mi_scene, origins: np.ndarray, directions: np.ndarray):
+    """The rays (origins and directions (N, 3), scene units) as a ``mi.Ray3f``, and their first intersections."""
     o, d = (np.asarray(a, dtype=np.float32) for a in (origins, directions))
     ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, j]) for j in range(3)]),
                    mi.Vector3f(*[mi.Float(d[:, j]) for j in range(3)]))
-    si = mi_scene.ray_intersect(ray)
+    return ray, mi_scene.ray_intersect(ray)
+
+
+def hit_distances(mi_scene, origins: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    """(N,) float64: how far each ray (origins and unit directions (N, 3),
+    scene units) travels to its first surface; inf where it meets none."""
+    _, si = _intersect(mi_scene, origins, directions)
     return np.where(np.array(si.is_valid()), np.array(si.t, dtype=np.float64), np.inf)
 
 
@@ -60,10 +65,7 @@ def first_hits(mi_scene, origins: np.ndarray, directions: np.ndarray) -> tuple[n
     """(N,) bool arrays ``hit`` and ``front``: whether each ray (origins and
     directions (N, 3), scene units) meets a surface, and whether the first
     one faces it."""
-    o, d = (np.asarray(a, dtype=np.float32) for a in (origins, directions))
-    ray = mi.Ray3f(mi.Point3f(*[mi.Float(o[:, j]) for j in range(3)]),
-                   mi.Vector3f(*[mi.Float(d[:, j]) for j in range(3)]))
-    si = mi_scene.ray_intersect(ray)
+    ray, si = _intersect(mi_scene, origins, directions)
     hit = np.array(si.is_valid())
     return hit, np.array(dr.dot(si.n, ray.d) < 0) & hit
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from mitsuba_active.errors import UserError
 from mitsuba_active.planners import Planner, PlanningState, check_batch, unseen
-from mitsuba_active.planners.covering import direction_angles, planned_mask
+from mitsuba_active.planners.covering import direction_angles, nearest_angles, planned_mask
 
 
 class PlannedCover(Planner):
@@ -35,7 +35,7 @@ class PlannedCover(Planner):
             planned = planned_mask(state, picks)
             if planned is None:
                 raise UserError("PlannedCover needs the run's budget, and views left to plan within it")
-            nearest = between[:, taken].min(axis=1) if taken else np.zeros(len(between))
+            nearest = nearest_angles(between, taken)
             first = nearest if first is None else first
             pick = int(np.argmax(np.where(planned, nearest, -1.0)))
             picks.append(pick)

@@ -19,6 +19,12 @@ def direction_angles(cameras) -> np.ndarray:
     return np.arccos(np.clip(forward @ forward.T, -1.0, 1.0))
 
 
+def nearest_angles(between: np.ndarray, taken: list) -> np.ndarray:
+    """(C,) float: each candidate's angle to the nearest of ``taken`` (zeros where none is):
+    ``coverage``'s score, given ``between`` as for :func:`planned_cover`."""
+    return between[:, taken].min(axis=1) if len(taken) else np.zeros(len(between))
+
+
 def planned_cover(between: np.ndarray, fixed: list, n: int, allowed: np.ndarray) -> list[int]:
     """``n`` candidates, ``fixed`` first, whose largest gap local search has lowered.
 
@@ -40,11 +46,10 @@ def planned_cover(between: np.ndarray, fixed: list, n: int, allowed: np.ndarray)
                          f"with {int(np.count_nonzero(free))} others allowed")
     planned = list(fixed)
     while len(planned) < n:  # coverage's picks to start from
-        nearest = between[:, planned].min(axis=1) if planned else np.zeros(len(between))
-        pick = int(np.argmax(np.where(free, nearest, -1.0)))
+        pick = int(np.argmax(np.where(free, nearest_angles(between, planned), -1.0)))
         planned.append(pick)
         free[pick] = False
-    nearest = between[:, planned].min(axis=1) if planned else np.full(len(between), np.pi)
+    nearest = nearest_angles(between, planned)  # with nothing planned there is no slot to swap
     best = (nearest.max(), nearest.mean())
     lowered = True
     while lowered:

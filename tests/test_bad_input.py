@@ -13,6 +13,7 @@ from click.testing import CliRunner
 
 from mitsuba_active.cli import main
 from mitsuba_active.errors import UserError
+from mitsuba_active.scene import load_scene
 
 
 def run_cli(*args):
@@ -718,6 +719,19 @@ def test_the_interior_rig_inside_an_object_says_what_to_use(spot_xml, tmp_path):
     code, text = run_cli("render", spot_xml, "-o", out, "--rig", "interior", "--candidates", "10")
     assert_one_line_error(code, text, "of the 10 candidate cameras")
     assert "is an object, not a room: use --rig sphere" in text
+    assert not out.exists()
+
+
+def test_a_room_without_room_for_clear_cameras_says_so(shared_data, tmp_path, monkeypatch):
+    """In a room, places nearer a surface than the clearance are no places for a camera."""
+    monkeypatch.setattr("mitsuba_active.rigs.INTERIOR_CLEARANCE", 0.3)  # no place in the box is that clear
+    out = tmp_path / "o"
+    code, text = run_cli("render", shared_data / "mitsuba/cbox/cbox.xml", "-o", out, "--rig", "interior",
+                         "--candidates", "10")
+    assert_one_line_error(code, text, "of the 10 candidate cameras")
+    room = load_scene(shared_data / "mitsuba/cbox/cbox.xml")
+    clearance = 0.3 * np.linalg.norm(room.bbox_max - room.bbox_min)
+    assert f"or closer than {clearance:.3g} to a surface; ask for fewer views" in text
     assert not out.exists()
 
 
